@@ -1,0 +1,143 @@
+"""The thin-lens camera shared by the ray tracer, Mitsuba 3 and Cycles.
+
+Conventions (see ``shared/REFERENCE.md``):
+
+- Image coordinates ``(x, y)`` are in pixels from the image centre, x to the right
+  and y *down* (OpenCV). Pixel column ``j`` covers ``x in [j - W/2, j + 1 - W/2)``.
+- Disparity ``d = 1/Z`` in 1/scene-unit, Z the depth along the optical axis.
+- Pinhole projection ``x = f_px X / Z``; the sensor distance of the paper is
+  ``z_s = f_px`` (Eq. 8).
+- A thin lens of aperture radius ``R`` (scene units) focused at depth ``z_f``
+  (``d_f = 1/z_f``) blurs a point at disparity d into a disk of radius
+  ``r = A |d - d_f|`` pixels, with the blur parameter ``A = R f_px`` (Eq. 14,
+  ``A = R z_s``).
+
+The :class:`Camera` holds the image-space form (size, ``A``, ``d_f``) plus the focal
+length in pixels, which fixes the physical form; :meth:`Camera.thin_lens` and
+:meth:`Camera.from_thin_lens` convert both ways. Blender and Mitsuba settings are
+derived from the physical form only here, so each conversion is written once.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+#: Default horizontal field of view used when a scene does not give a focal length:
+#: a 50 mm lens on a 36 mm sensor (fov_x = 39.6 degrees).
+DEFAULT_LENS_MM = 50.0
+DEFAULT_SENSOR_MM = 36.0
+
+
+@dataclass(frozen=True)
+class ThinLens:
+    """Physical thin lens, in scene units.
+
+    Attributes:
+        focal_length_px: focal length in pixels (``f_px``, the paper's ``z_s``).
+        aperture_radius: lens aperture radius ``R`` in scene units.
+        focus_distance: depth of the plane in focus ``z_f`` in scene units
+            (``math.inf`` for focus at infinity).
+    """
+
+    focal_length_px: float
+    aperture_radius: float
+    focus_distance: float
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Image-space thin-lens camera.
+
+    Attributes:
+        width, height: image size in pixels.
+        blur_parameter: ``A`` in pixels per unit disparity (``A = R f_px``).
+        focus_disparity: ``d_f = 1/z_f`` in 1/scene-unit (0 = focus at infinity).
+        focal_length_px: ``f_px``; only the physical form (Mitsuba, Cycles) depends
+            on it. Defaults to a 50 mm lens on a 36 mm wide sensor.
+    """
+
+    width: int
+    height: int
+    blur_parameter: float
+    focus_disparity: float
+    focal_length_px: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.focal_length_px is None:
+            object.__setattr__(
+                self, "focal_length_px", DEFAULT_LENS_MM / DEFAULT_SENSOR_MM * self.width
+            )
+
+    # -- blur -------------------------------------------------------------------------
+    def blur_radius(self, disparity: float) -> float:
+        """Circle-of-confusion radius ``A |d - d_f|`` in pixels for disparity ``d``."""
+        return self.blur_parameter * abs(disparity - self.focus_disparity)
+
+    # -- physical form ------------------------------------------------------------------
+    def thin_lens(self) -> ThinLens:
+        """The physical lens: ``R = A / f_px``, ``z_f = 1 / d_f``."""
+        f = float(self.focal_length_px)
+        z_f = math.inf if self.focus_disparity == 0 else 1.0 / self.focus_disparity
+        return ThinLens(f, self.blur_parameter / f, z_f)
+
+    @classmethod
+    def from_thin_lens(cls, width: int, height: int, lens: ThinLens) -> "Camera":
+        """Inverse of :meth:`thin_lens`: ``A = R f_px``, ``d_f = 1 / z_f``."""
+        d_f = 0.0 if math.isinf(lens.focus_distance) else 1.0 / lens.focus_distance
+        return cls(width, height, lens.aperture_radius * lens.focal_length_px, d_f,
+                   lens.focal_length_px)
+
+    @property
+    def fov_x_deg(self) -> float:
+        """Horizontal field of view in degrees: ``fov_x = 2 atan(W / (2 f_px))``."""
+        return math.degrees(2.0 * math.atan(0.5 * self.width / float(self.focal_length_px)))
+
+    # -- Cycles ------------------------------------------------------------------------------
+    def cycles_settings(self, sensor_width_mm: float = DEFAULT_SENSOR_MM,
+                        scene_unit_m: float = 1.0) -> dict:
+        """Blender camera settings that reproduce this camera (sensor fit horizontal).
+
+        ``f_px = lens_mm / sensor_mm * W`` and ``R = lens / (2 N)``, so
+        ``N = lens / (2 R)`` with the focal length converted to scene units.
+        """
+        lens_mm = float(self.focal_length_px) / self.width * sensor_width_mm
+        lens = self.thin_lens()
+        lens_units = lens_mm * 1e-3 / scene_unit_m
+        fstop = math.inf if lens.aperture_radius == 0 else lens_units / (2.0 * lens.aperture_radius)
+        return {
+            "lens_mm": lens_mm,
+            "sensor_width_mm": sensor_width_mm,
+            "sensor_fit": "HORIZONTAL",
+            "fstop": fstop,
+            "focus_distance": lens.focus_distance,
+        }
+
+    # -- Mitsuba -----------------------------------------------------------------------------
+    def mitsuba_settings(self) -> dict:
+        """Mitsuba ``thinlens`` parameters: ``fov`` along x, ``aperture_radius``, ``focus_distance``."""
+        lens = self.thin_lens()
+        return {
+            "fov": self.fov_x_deg,
+            "fov_axis": "x",
+            "aperture_radius": lens.aperture_radius,
+            "focus_distance": lens.focus_distance,
+        }
+
+    # -- geometry ------------------------------------------------------------------------------
+    def pixel_centres(self) -> tuple:
+        """Centred coordinates of the pixel centres: ``x_j = j + 0.5 - W/2`` (1-D arrays)."""
+        import numpy as np
+
+        xs = np.arange(self.width, dtype=np.float64) + 0.5 - 0.5 * self.width
+        ys = np.arange(self.height, dtype=np.float64) + 0.5 - 0.5 * self.height
+        return xs, ys
+
+    def to_dict(self) -> dict:
+        return {
+            "width": int(self.width),
+            "height": int(self.height),
+            "blur_parameter": float(self.blur_parameter),
+            "focus_disparity": float(self.focus_disparity),
+            "focal_length_px": float(self.focal_length_px),
+        }

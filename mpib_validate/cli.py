@@ -1,0 +1,207 @@
+"""The ``mpib`` command line: a thin layer over the package's functions.
+
+Subcommands:
+  generate   make a seeded random card scene (JSON + EXR textures)
+  render     render a scene (the Eq. 15 ray tracer) to EXR + PNG preview
+  demo       the README's main job on an embedded default scene
+  bench      speed/error measurements, written to a report folder
+  backends   which compute backends run on this machine
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from . import __version__
+
+
+class CliError(Exception):
+    """A user error: printed as one line, exit status 2."""
+
+
+def _parse_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must look like 256x256, got {text!r}") from None
+    if w < 1 or h < 1:
+        raise argparse.ArgumentTypeError(f"size must be positive, got {text!r}")
+    return w, h
+
+
+def _sample_set(args):
+    from . import samples
+
+    if args.aperture == "grid":
+        return samples.grid(args.grid_side, pixel=args.pixel)
+    return samples.stratified(args.spp, seed=args.seed, pixel=args.pixel)
+
+
+# --------------------------------------------------------------------------------------
+
+
+def cmd_generate(args) -> int:
+    from .generate import GeneratorSettings, generate
+    from .scene import save_scene
+
+    w, h = args.size
+    scene = generate(args.seed, args.family, args.case, GeneratorSettings(width=w, height=h))
+    path = save_scene(scene, args.out)
+    cam = scene.camera
+    print(f"wrote {path}: {len(scene.cards)} cards, {cam.width}x{cam.height}, "
+          f"A={cam.blur_parameter:.2f} px, d_f={cam.focus_disparity:.4f}, "
+          f"largest blur radius {scene.max_blur_radius():.1f} px")
+    return 0
+
+
+def _apply_camera_overrides(scene, args):
+    changes = {}
+    if args.focus_disparity is not None:
+        changes["focus_disparity"] = args.focus_disparity
+    if args.blur_parameter is not None:
+        changes["blur_parameter"] = args.blur_parameter
+    return scene.with_camera(**changes).validate("command line") if changes else scene
+
+
+def cmd_render(args) -> int:
+    from .atomic import refuse_overwrite
+    from .render_io import write_render
+    from .scene import load_scene
+    from .trace import render
+
+    if args.engine != "trace":
+        raise CliError(f"engine '{args.engine}' is not available yet; use --engine trace")
+    scene = _apply_camera_overrides(load_scene(args.scene), args)
+    src = Path(args.scene)
+    json_path = src / "scene.json" if src.is_dir() else src
+    refuse_overwrite(args.output, [json_path] + [json_path.parent / "cards" / f"{c.name}.exr"
+                                                 for c in scene.cards])
+    refuse_overwrite(Path(args.output).with_suffix(".png"), [json_path])
+    smp = _sample_set(args)
+    result = render(scene, smp, backend=args.backend, lookup=args.lookup, order=args.order,
+                    progress=not args.quiet)
+    written = write_render(args.output, result, scene, preview=not args.no_preview)
+    m = result.meta
+    print(f"rendered {scene.camera.width}x{scene.camera.height}, {len(scene.cards)} cards, "
+          f"{m['sample_count']} samples ({m['samples']}) on {m['backend']} in {m['seconds']:.2f} s")
+    for p in written:
+        print(f"wrote {p}")
+    return 0
+
+
+def cmd_demo(args) -> int:
+    from .demo import run_demo
+
+    run_demo(Path(args.out), size=args.size, spp=args.spp, backend=args.backend)
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from .bench import run_bench
+
+    run_bench(Path(args.out), suite=args.suite, quick=not args.full)
+    return 0
+
+
+def cmd_backends(args) -> int:
+    from . import backend
+
+    report = {}
+    for name in ("numpy", "llvm", "cuda"):
+        be = backend.resolve(name)
+        report[name] = {"runs_as": be.name, "notice": be.notice, "llvm_library": be.llvm_library}
+    print(json.dumps(report, indent=2))
+    return 0
+
+
+# --------------------------------------------------------------------------------------
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from .generate import FAMILIES, HARD_CASES
+
+    p = argparse.ArgumentParser(prog="mpib", description=__doc__.split("\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--version", action="version", version=f"mpib {__version__}")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    g = sub.add_parser("generate", help="make a seeded random card scene",
+                       description="Write a random card scene (scene.json + cards/*.exr). "
+                                   "The same seed gives the same files, byte for byte.")
+    g.add_argument("--seed", type=int, default=0, help="non-negative integer (default 0)")
+    g.add_argument("--family", choices=FAMILIES, default="constant",
+                   help="constant: fronto-parallel cards; varying: tilted planes")
+    g.add_argument("--case", choices=HARD_CASES, default=None, help="force one named hard case")
+    g.add_argument("--size", type=_parse_size, default=(256, 256), help="WxH (default 256x256)")
+    g.add_argument("--out", required=True, help="output scene directory")
+    g.set_defaults(func=cmd_generate)
+
+    r = sub.add_parser("render", help="render a scene to EXR + PNG",
+                       description="Render a card scene. --engine trace is the paper's "
+                                   "image-space thin-lens ray tracer (Eq. 15).")
+    r.add_argument("scene", help="scene directory or scene.json")
+    r.add_argument("-o", "--output", required=True, help="output EXR path (a PNG is written beside it)")
+    r.add_argument("--engine", default="trace", choices=["trace", "mitsuba", "cycles"])
+    r.add_argument("--aperture", choices=["sobol", "grid"], default="sobol",
+                   help="sobol: scrambled 4-D Sobol (default); grid: the official square grid")
+    r.add_argument("--spp", type=int, default=1024, help="samples per pixel for --aperture sobol")
+    r.add_argument("--grid-side", type=int, default=51,
+                   help="grid points per side for --aperture grid (51 = 1,957 samples)")
+    r.add_argument("--pixel", choices=["box", "centre"], default="box",
+                   help="box: average over the pixel area (canonical); centre: pixel centres")
+    r.add_argument("--seed", type=int, default=0, help="sample set seed")
+    r.add_argument("--backend", choices=["auto", "numpy", "llvm", "cuda"], default="auto")
+    r.add_argument("--lookup", choices=["nearest", "bilinear"], default="nearest")
+    r.add_argument("--order", choices=["depth", "fixed"], default="depth",
+                   help="depth: per-ray depth sort; fixed: the official generator's order")
+    r.add_argument("--focus-disparity", type=float, default=None, help="override d_f (1/scene-unit)")
+    r.add_argument("--blur-parameter", type=float, default=None, help="override A (px per unit disparity)")
+    r.add_argument("--no-preview", action="store_true", help="do not write the PNG preview")
+    r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    r.set_defaults(func=cmd_render)
+
+    d = sub.add_parser("demo", help="the main job on an embedded default scene",
+                       description="Generate the default scenes (both families), render them "
+                                   "and write a short report.")
+    d.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
+    d.add_argument("--size", type=int, default=256, help="image side in pixels (default 256)")
+    d.add_argument("--spp", type=int, default=1024, help="ray tracer samples per pixel")
+    d.add_argument("--backend", choices=["auto", "numpy", "llvm", "cuda"], default="auto")
+    d.set_defaults(func=cmd_demo)
+
+    b = sub.add_parser("bench", help="measure speed and error; write a report",
+                       description="Run a benchmark suite and write a report folder "
+                                   "(Markdown + JSON).")
+    b.add_argument("--out", default="out/bench", help="report folder (default out/bench)")
+    b.add_argument("--suite", choices=["tracer"], default="tracer")
+    b.add_argument("--full", action="store_true", help="full sizes (slow); default is quick")
+    b.set_defaults(func=cmd_bench)
+
+    k = sub.add_parser("backends", help="which compute backends run here",
+                       description="Probe numpy, Dr.Jit LLVM and Dr.Jit CUDA (in subprocesses).")
+    k.set_defaults(func=cmd_backends)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    from .atomic import OutputError
+    from .exr import ExrError
+    from .scene import SceneError
+
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except (CliError, SceneError, ExrError, OutputError, ValueError) as exc:
+        print(f"mpib {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"mpib {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

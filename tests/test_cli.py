@@ -1,0 +1,63 @@
+"""The `mpib` command line, run as a user would run it (a real subprocess)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from mpib_validate.exr import read_exr, rgba_from
+
+
+def mpib(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "mpib_validate.cli", *map(str, args)],
+                          capture_output=True, text=True, cwd=cwd, timeout=300)
+
+
+def test_every_subcommand_has_help():
+    for sub in ("generate", "render", "demo", "bench", "backends"):
+        r = mpib(sub, "--help")
+        assert r.returncode == 0 and "usage: mpib " + sub in r.stdout
+
+
+@pytest.mark.parametrize("family", ["constant", "varying"])
+def test_generate_then_render(tmp_path, family):
+    r = mpib("generate", "--seed", 3, "--family", family, "--size", "48x32", "--out", tmp_path / "scene")
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "scene" / "scene.json").exists()
+    out = tmp_path / "render" / "trace.exr"
+    r = mpib("render", tmp_path / "scene", "--engine", "trace", "-o", out, "--spp", 16, "-q")
+    assert r.returncode == 0, r.stderr
+    img = read_exr(out)
+    bokeh = rgba_from(img)
+    assert bokeh.shape == (32, 48, 4) and np.isfinite(bokeh).all()
+    for name in ("AllInFocus.R", "Depth.Z", "Disparity.Y", "Layer.Y", "Hit.background.A"):
+        assert name in img.channels
+    meta = json.loads(img.header["mpib"])
+    assert meta["engine"] == "trace" and meta["sample_count"] == 16
+    assert out.with_suffix(".png").exists()
+
+
+def test_render_errors_are_one_clear_line(tmp_path):
+    r = mpib("render", tmp_path / "missing", "-o", tmp_path / "x.exr")
+    assert r.returncode == 2
+    assert "scene file does not exist" in r.stderr and "Traceback" not in r.stderr
+    r = mpib("generate", "--seed", 1, "--size", "24x24", "--out", tmp_path / "s")
+    assert r.returncode == 0
+    tex = tmp_path / "s" / "cards" / "background.exr"
+    before = tex.read_bytes()
+    r = mpib("render", tmp_path / "s", "-o", tex, "-q")
+    assert r.returncode == 2 and "refusing to overwrite the input" in r.stderr
+    assert tex.read_bytes() == before
+    r = mpib("render", tmp_path / "s", "-o", tmp_path / "y.exr", "--blur-parameter", 0)
+    assert r.returncode == 2 and "zero aperture" in r.stderr
+
+
+def test_backends_reports_json():
+    r = mpib("backends")
+    assert r.returncode == 0
+    report = json.loads(r.stdout)
+    assert report["numpy"]["runs_as"] == "numpy"
