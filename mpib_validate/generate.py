@@ -137,10 +137,7 @@ def generate(seed: int, family: str = "constant", case: str | None = None,
 
 def _draw(rng, seed, family, case, s: GeneratorSettings) -> Scene:
     W, H = s.width, s.height
-    k = _u(rng, s.blur_k)
-    if case == "large-blur":
-        k = rng.uniform(1.6, 2.2) * 256 * 0.1 / 0.8  # radius up to > 10 % of the width
-    A = k * W / 256.0
+    A = _u(rng, s.blur_k) * W / 256.0
     n_obj = int(rng.integers(s.objects[0], s.objects[1] + 1))
     d_bg = _u(rng, s.background_disparity)
     d_fg = np.sort(rng.uniform(*s.foreground_disparity, size=n_obj))[::-1]  # nearest first
@@ -167,7 +164,9 @@ def _draw(rng, seed, family, case, s: GeneratorSettings) -> Scene:
     elif case == "grazing":
         tilts[0] = float(rng.uniform(0.7, 0.9)) * float(d_fg[0])  # disparity spans most of its range
     elif case == "large-blur":
+        # focus on the nearest object; the background blurs to 12-20 % of the width
         d_f = float(d_fg[0])
+        A = float(rng.uniform(0.12, 0.2)) * W / (d_f - d_bg)
 
     camera = Camera(W, H, A, d_f)
     cards = [_background_card(rng, camera, family, d_bg, hdr[0])]

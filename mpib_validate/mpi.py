@@ -1,0 +1,288 @@
+"""The multiplane image (MPI): premultiplied RGBA layers at fixed disparities.
+
+Storage models only what is there: each non-empty layer keeps the bounding box of its
+content (alpha > 0) and nothing else; an empty plane is not stored at all. Layers live
+on a *canvas*: the frame plus ``margin`` pixels on every side, so that layers taken
+from card scenes can hold the real content a defocused view sees beyond the frame
+edge. An MPI built from a picture has ``margin = 0``, and the compositor continues its
+content past the frame edge by replication (the official padding).
+
+Plane placement (:func:`uniform_planes`, :func:`adaptive_planes`) and the split of a
+disparity between its two neighbouring planes (:func:`split_between_planes`) live here
+too, since both the card path and the colour + depth path use them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .scene import Scene
+
+
+@dataclass
+class Layer:
+    """One MPI plane: premultiplied RGBA over a box of the canvas.
+
+    Attributes:
+        disparity: the plane's disparity (1/scene-unit).
+        rgba: ``(h, w, 4)`` float32, colour premultiplied by alpha (linear radiance).
+        y0, x0: top-left of the box in canvas pixels.
+    """
+
+    disparity: float
+    rgba: np.ndarray
+    y0: int
+    x0: int
+
+    @property
+    def box(self) -> tuple[int, int, int, int]:
+        h, w = self.rgba.shape[:2]
+        return self.y0, self.y0 + h, self.x0, self.x0 + w
+
+
+@dataclass
+class MPI:
+    """Layers sorted far to near (increasing disparity).
+
+    Attributes:
+        height, width: the frame size in pixels.
+        margin: canvas pixels beyond the frame on each side that the layers may hold.
+        layers: non-empty layers, far to near.
+    """
+
+    height: int
+    width: int
+    margin: int = 0
+    layers: list[Layer] = field(default_factory=list)
+
+    @property
+    def canvas_shape(self) -> tuple[int, int]:
+        return self.height + 2 * self.margin, self.width + 2 * self.margin
+
+    @property
+    def disparities(self) -> np.ndarray:
+        return np.array([l.disparity for l in self.layers])
+
+    def dense(self) -> np.ndarray:
+        """``(N, H_c, W_c, 4)`` canvas-sized layers (for tests and small images)."""
+        hc, wc = self.canvas_shape
+        out = np.zeros((len(self.layers), hc, wc, 4), np.float32)
+        for i, l in enumerate(self.layers):
+            y0, y1, x0, x1 = l.box
+            out[i, y0:y1, x0:x1] = l.rgba
+        return out
+
+    @classmethod
+    def from_dense(cls, disparities, rgba: np.ndarray, margin: int = 0) -> "MPI":
+        """Build from ``(N, H_c, W_c, 4)`` premultiplied layers; crops each to its content
+        and drops empty ones. Disparities need not be sorted."""
+        rgba = np.asarray(rgba, np.float32)
+        if rgba.ndim != 4 or rgba.shape[-1] != 4:
+            raise ValueError(f"layers must be (N, H, W, 4), got {rgba.shape}")
+        if len(disparities) != rgba.shape[0]:
+            raise ValueError(f"{len(disparities)} disparities for {rgba.shape[0]} layers")
+        hc, wc = rgba.shape[1:3]
+        mpi = cls(hc - 2 * margin, wc - 2 * margin, margin)
+        for d, layer in sorted(zip(disparities, rgba), key=lambda t: t[0]):
+            mpi.add(float(d), layer, 0, 0)
+        return mpi
+
+    def add(self, disparity: float, rgba: np.ndarray, y0: int, x0: int) -> None:
+        """Add premultiplied content at canvas position ``(y0, x0)``, cropped to where
+        alpha or colour is non-zero; nothing is stored for empty content."""
+        if not np.isfinite(disparity) or disparity < 0:
+            raise ValueError(f"layer disparity must be finite and >= 0, got {disparity}")
+        nz = (rgba != 0).any(axis=2)
+        if not nz.any():
+            return
+        rows = np.flatnonzero(nz.any(axis=1))
+        cols = np.flatnonzero(nz.any(axis=0))
+        r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+        crop = np.ascontiguousarray(rgba[r0:r1, c0:c1], dtype=np.float32)
+        self.layers.append(Layer(float(disparity), crop, y0 + int(r0), x0 + int(c0)))
+        self.layers.sort(key=lambda l: l.disparity)
+
+
+# --------------------------------------------------------------------------------------
+# Plane placement
+
+
+def uniform_planes(n: int = 32, d_max: float = 1.0) -> np.ndarray:
+    """The paper's planes: ``d_i = (i + 0.5) / n * d_max``, far to near."""
+    return (np.arange(n) + 0.5) / n * d_max
+
+
+def plane_spacing(blur_parameter: float, tolerance_px: float) -> float:
+    """Largest disparity step whose blur-radius step ``A * step`` keeps the radius
+    quantisation error within ``tolerance_px``: a disparity between two planes is at
+    most half a step from one of them, so ``step = 2 tol / A``."""
+    if blur_parameter <= 0 or tolerance_px <= 0:
+        raise ValueError("blur parameter and tolerance must be > 0")
+    return 2.0 * tolerance_px / blur_parameter
+
+
+def adaptive_planes(intervals, blur_parameter: float, tolerance_px: float = 0.25) -> np.ndarray:
+    """Planes only where content is: each disparity interval ``[lo, hi]`` (a point when
+    ``lo == hi``) gets the fewest evenly spaced planes whose step is at most
+    :func:`plane_spacing`, ends included. Overlapping intervals are merged first.
+    Returns sorted disparities (far to near); empty disparity ranges cost nothing.
+    """
+    step = plane_spacing(blur_parameter, tolerance_px)
+    spans = sorted((float(lo), float(hi)) for lo, hi in intervals)
+    merged: list[list[float]] = []
+    for lo, hi in spans:
+        if merged and lo <= merged[-1][1] + 1e-12:
+            merged[-1][1] = max(merged[-1][1], hi)
+        else:
+            merged.append([lo, hi])
+    planes = []
+    for lo, hi in merged:
+        n = max(1, int(math.ceil((hi - lo) / step - 1e-9)))
+        planes.extend(np.linspace(lo, hi, n + 1) if hi > lo else [lo])
+    return np.unique(np.asarray(planes, np.float64))
+
+
+def split_between_planes(d: np.ndarray, alpha: np.ndarray, planes: np.ndarray):
+    """Share content of disparity ``d`` and alpha ``alpha`` between its two neighbouring
+    planes so that compositing gives back alpha and Eq. 16 gives back ``d``.
+
+    With ``w = (d - d_lo) / (d_hi - d_lo)``, the near plane gets ``a_hi = w alpha`` and
+    the far plane ``a_lo = alpha (1 - w) / (1 - w alpha)``, so that
+    ``a_hi + (1 - a_hi) a_lo = alpha`` ("over" restores coverage, an opaque pixel stays
+    opaque: no cracks between slabs) and ``d_hi a_hi + d_lo (1 - a_hi) a_lo = d alpha``
+    (Eq. 16). Both layers keep the pixel's own colour. Disparities outside the planes'
+    range go wholly to the first or last plane.
+
+    Returns ``(index_lo, alpha_lo, alpha_hi)``: the far plane's index and both alphas.
+    """
+    planes = np.asarray(planes, np.float64)
+    d = np.asarray(d, np.float64)
+    alpha = np.asarray(alpha, np.float64)
+    if len(planes) == 1:
+        return np.zeros(d.shape, np.int64), alpha, np.zeros_like(alpha)
+    idx = np.clip(np.searchsorted(planes, d, side="right") - 1, 0, len(planes) - 2)
+    lo, hi = planes[idx], planes[idx + 1]
+    w = np.clip((d - lo) / (hi - lo), 0.0, 1.0)
+    a_hi = w * alpha
+    denom = 1.0 - a_hi
+    # denom = 0 only for opaque content exactly on the near plane: nothing goes behind it
+    a_lo = np.where(denom > 0, alpha * (1.0 - w) / np.where(denom > 0, denom, 1.0), 0.0)
+    return idx, a_lo, a_hi
+
+
+# --------------------------------------------------------------------------------------
+# Exact layers from card scenes
+
+
+def card_disparity_intervals(scene: Scene, margin: int = 0) -> list[tuple[float, float]]:
+    """Each card's disparity range over the part of it inside the canvas."""
+    cam = scene.camera
+    out = []
+    for card in scene.cards:
+        x0, x1, y0, y1 = card.extent(cam)
+        hw, hh = 0.5 * cam.width + margin, 0.5 * cam.height + margin
+        x0, x1 = max(x0, -hw), min(x1, hw)
+        y0, y1 = max(y0, -hh), min(y1, hh)
+        if x0 >= x1 or y0 >= y1:
+            continue
+        if card.plane.is_fronto:
+            d = 1.0 / card.plane.c
+            out.append((d, d))
+        else:
+            xs = np.array([x0 + 0.5, x1 - 0.5, x0 + 0.5, x1 - 0.5])
+            ys = np.array([y0 + 0.5, y0 + 0.5, y1 - 0.5, y1 - 0.5])
+            d = card.plane.disparity(xs, ys)
+            out.append((float(d.min()), float(d.max())))
+    return out
+
+
+def layers_from_cards(scene: Scene, planes: np.ndarray | None = None,
+                      margin: int | None = None, split: str = "linear") -> MPI:
+    """The exact MPI of a card scene: every card's full texture (hidden parts included).
+
+    Fronto-parallel cards go to the plane at their own disparity when ``planes`` is
+    ``None`` (one plane per distinct card disparity: no quantisation at all), else are
+    split like tilted ones. Tilted cards are cut into slabs: each texel, at the
+    disparity of its centre, is shared between its two neighbouring planes by
+    :func:`split_between_planes` (``split="linear"``: no cracks at slab edges, Eq. 16
+    exact) or goes wholly to the nearest plane (``split="nearest"``, the hard cut whose
+    slab edges can crack, as in the paper's failure case).
+
+    Cards meeting on one plane are combined with "over", nearer card (by disparity at
+    its centre) on top. ``margin`` defaults to the largest blur radius plus 2 px, so
+    that border pixels see real content.
+    """
+    cam = scene.camera
+    if margin is None:
+        margin = int(math.ceil(scene.max_blur_radius())) + 2
+    H, W = cam.height, cam.width
+    hc, wc = H + 2 * margin, W + 2 * margin
+    if planes is None:
+        fronto = sorted({1.0 / c.plane.c for c in scene.cards if c.plane.is_fronto})
+        tilted = [iv for iv, c in zip(card_disparity_intervals(scene, margin), scene.cards)
+                  if not c.plane.is_fronto]
+        extra = adaptive_planes(tilted, cam.blur_parameter) if tilted else []
+        planes = np.unique(np.concatenate([fronto, extra]))
+    planes = np.asarray(planes, np.float64)
+    acc = np.zeros((len(planes), hc, wc, 4), np.float32)
+
+    def centre_d(card):
+        x0, x1, y0, y1 = card.extent(cam)
+        return float(card.plane.disparity(0.5 * (x0 + x1), 0.5 * (y0 + y1)))
+
+    for card in sorted(scene.cards, key=centre_d):  # far to near: nearer goes "over"
+        ox, oy = card.offset[0] + margin, card.offset[1] + margin
+        h, w = card.rgba.shape[:2]
+        cy0, cy1 = max(0, oy), min(hc, oy + h)
+        cx0, cx1 = max(0, ox), min(wc, ox + w)
+        if cy0 >= cy1 or cx0 >= cx1:
+            continue
+        tex = card.rgba[cy0 - oy:cy1 - oy, cx0 - ox:cx1 - ox]
+        alpha = tex[..., 3].astype(np.float64)
+        ys = np.arange(cy0, cy1) + 0.5 - margin - 0.5 * H
+        xs = np.arange(cx0, cx1) + 0.5 - margin - 0.5 * W
+        d = card.plane.disparity(xs[None, :], ys[:, None]) * np.ones_like(alpha)
+        if split == "nearest":
+            idx = np.abs(d[..., None] - planes).argmin(axis=-1)
+            shares = [(idx, alpha)]
+        elif split == "linear":
+            idx, a_lo, a_hi = split_between_planes(d, alpha, planes)
+            shares = [(idx, a_lo), (np.minimum(idx + 1, len(planes) - 1), a_hi)]
+        else:
+            raise ValueError(f"split must be 'linear' or 'nearest', got {split!r}")
+        colour = tex[..., :3].astype(np.float64)
+        for index, a in shares:
+            for p in np.unique(index[a > 0]):
+                m = (index == p) & (a > 0)
+                piece = np.zeros((cy1 - cy0, cx1 - cx0, 4), np.float64)
+                piece[..., :3][m] = colour[m] * a[m, None]
+                piece[..., 3][m] = a[m]
+                dst = acc[p, cy0:cy1, cx0:cx1]
+                dst *= (1.0 - piece[..., 3:4]).astype(np.float32)
+                dst += piece.astype(np.float32)
+    mpi = MPI(H, W, margin)
+    for p, d in enumerate(planes):
+        mpi.add(float(d), acc[p], 0, 0)
+    return mpi
+
+
+def mpi_to_scene(mpi: MPI, camera) -> Scene:
+    """The MPI as a card scene: one fronto-parallel card per layer (straight alpha).
+
+    Rendering it with the Eq. 15 tracer is the *exact* MPI renderer: every aperture
+    sample shifts each layer by ``A (d_i - d_f) (mu, nu)`` and composites front to back.
+    A plane at disparity 0 (infinitely far) is placed at 1e-9.
+    """
+    from .scene import Card, Plane
+
+    cards = []
+    for i, l in enumerate(mpi.layers):
+        a = l.rgba[..., 3:4]
+        rgb = np.divide(l.rgba[..., :3], a, out=np.zeros_like(l.rgba[..., :3]), where=a > 0)
+        straight = np.concatenate([rgb, a], axis=-1).astype(np.float32)
+        cards.append(Card(f"layer{i:03d}", straight, Plane.fronto(max(l.disparity, 1e-9)),
+                          (l.x0 - mpi.margin, l.y0 - mpi.margin)))
+    return Scene(camera, cards, {"from": "mpi"})
