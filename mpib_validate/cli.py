@@ -4,6 +4,7 @@ Subcommands:
   generate   make a seeded random card scene (JSON + EXR textures)
   render     render a scene (the Eq. 15 ray tracer) to EXR + PNG preview
   demo       the README's main job on an embedded default scene
+  compare    image metrics between two EXRs
   bench      speed/error measurements, written to a report folder
   backends   which compute backends run on this machine
 """
@@ -107,6 +108,61 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def _read_colour(path: str):
+    """RGB(A) of an EXR: the unprefixed R, G, B or Blender's ``*.Combined.*`` pass."""
+    from .exr import ExrError, read_exr, rgba_from
+
+    img = read_exr(path)
+    if "R" in img.channels:
+        return rgba_from(img)
+    combined = sorted({n.rsplit(".", 1)[0] + "." for n in img.channels if n.endswith("Combined.R")})
+    if len(combined) == 1:
+        return rgba_from(img, combined[0])
+    raise ExrError(f"no colour channels (R, G, B or *.Combined.*) in '{path}'; channels: "
+                   f"{', '.join(sorted(img.channels))}")
+
+
+def _read_mask(path: str, shape) -> "np.ndarray":
+    import numpy as np
+
+    from .exr import read_exr
+
+    if path.lower().endswith(".exr"):
+        img = read_exr(path)
+        name = next((n for n in ("Y", "A", "R", "mask.Y") if n in img.channels),
+                    sorted(img.channels)[0])
+        m = img.channels[name] > 0.5
+    else:
+        from PIL import Image
+
+        try:
+            m = np.asarray(Image.open(path).convert("L")) > 127
+        except (OSError, ValueError) as exc:
+            raise CliError(f"cannot read mask '{path}': {exc}") from None
+    if m.shape != tuple(shape):
+        raise CliError(f"mask '{path}' is {m.shape[1]}x{m.shape[0]} but the images are "
+                       f"{shape[1]}x{shape[0]}")
+    return m
+
+
+def cmd_compare(args) -> int:
+    from .metrics import all_metrics
+
+    a = _read_colour(args.reference)
+    b = _read_colour(args.test)
+    if a.shape != b.shape:
+        raise CliError(f"image sizes differ: '{args.reference}' is {a.shape[1]}x{a.shape[0]}, "
+                       f"'{args.test}' is {b.shape[1]}x{b.shape[0]}")
+    mask = _read_mask(args.mask, a.shape[:2]) if args.mask else None
+    res = all_metrics(a[..., :3], b[..., :3], mask, peak=args.peak, with_flip=not args.no_flip)
+    if args.json:
+        print(json.dumps(res, indent=2))
+    else:
+        for k, v in res.items():
+            print(f"{k:14s} {v:.6g}")
+    return 0
+
+
 def cmd_backends(args) -> int:
     from . import backend
 
@@ -177,9 +233,22 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Run a benchmark suite and write a report folder "
                                    "(Markdown + JSON).")
     b.add_argument("--out", default="out/bench", help="report folder (default out/bench)")
-    b.add_argument("--suite", choices=["tracer"], default="tracer")
+    b.add_argument("--suite", choices=["all", "tracer", "compositor"], default="all")
     b.add_argument("--full", action="store_true", help="full sizes (slow); default is quick")
     b.set_defaults(func=cmd_bench)
+
+    c = sub.add_parser("compare", help="PSNR, SSIM, FLIP (and _ob variants) of two EXRs",
+                       description="Compare a test image with a reference: PSNR, SSIM and FLIP "
+                                   "on [0, 1]-clipped values and on linear HDR values; with "
+                                   "--mask also PSNR_ob and SSIM_ob inside the mask.")
+    c.add_argument("reference", help="reference EXR")
+    c.add_argument("test", help="test EXR")
+    c.add_argument("--mask", help="mask (EXR channel Y/A/R > 0.5, or a PNG > 127)")
+    c.add_argument("--peak", type=float, default=None,
+                   help="HDR data range (default: the reference's largest value, at least 1)")
+    c.add_argument("--no-flip", action="store_true", help="skip FLIP")
+    c.add_argument("--json", action="store_true", help="print JSON")
+    c.set_defaults(func=cmd_compare)
 
     k = sub.add_parser("backends", help="which compute backends run here",
                        description="Probe numpy, Dr.Jit LLVM and Dr.Jit CUDA (in subprocesses).")

@@ -60,12 +60,16 @@ class CompositeSettings:
         crop: blur each layer only over its content box plus kernel radius.
         reduce_above: radius (px) above which a layer is blurred at reduced
             resolution; ``None`` = never.
+        backend: ``numpy`` (scipy direct/FFT), or ``llvm`` / ``cuda`` for the Dr.Jit
+            gather-based blur (:mod:`mpib_validate.blur_drjit`; ``conv`` is then
+            ignored). A Dr.Jit backend that cannot run falls back to numpy with a notice.
     """
 
     kernel: str = "canonical"
     conv: str = "auto"
     crop: bool = True
     reduce_above: float | None = None
+    backend: str = "numpy"
 
 
 PLAIN = CompositeSettings(kernel="canonical", conv="direct", crop=False, reduce_above=None)
@@ -122,7 +126,22 @@ def _reduced_kernel(rho: float, s: int, settings, cell):
     return _layer_kernel(math.copysign(math.sqrt(r2), rho) / s, settings, cell)
 
 
-def _blur_reduced(padded: np.ndarray, pad: int, h: int, w: int, s: int, kc, conv) -> np.ndarray:
+def _correlate(padded: np.ndarray, kernel: np.ndarray, settings: CompositeSettings) -> np.ndarray:
+    if settings.backend != "numpy" and kernel.shape != (1, 1):
+        from .backend import notify, resolve
+
+        be = resolve(settings.backend)
+        if be.name != "numpy":
+            from .blur_drjit import correlate_drjit
+
+            return correlate_drjit(padded, kernel, be.name)
+        if be.notice and not getattr(_correlate, "_told", False):
+            notify(be)
+            _correlate._told = True
+    return _k.correlate(padded, kernel, settings.conv)
+
+
+def _blur_reduced(padded: np.ndarray, pad: int, h: int, w: int, s: int, kc, settings) -> np.ndarray:
     """Blur at 1/s resolution: area-average down, correlate with ``kc``, bilinear up.
 
     ``padded`` holds the output box grown by ``pad = (Rc + 2) s`` on every side, which
@@ -137,7 +156,7 @@ def _blur_reduced(padded: np.ndarray, pad: int, h: int, w: int, s: int, kc, conv
     f0 = pad - (Rc + 1) * s  # coarse cell k covers rows [f0 + k s, f0 + (k + 1) s)
     fine = padded[f0:f0 + Hc * s, f0:f0 + Wc * s]
     coarse = fine.reshape(Hc, s, Wc, s, -1).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
-    blurred = _k.correlate(coarse, kc, conv)  # coarse cells Rc .. Hc - Rc - 1
+    blurred = _correlate(coarse, kc, settings)  # coarse cells Rc .. Hc - Rc - 1
     # fine output pixel centre in units of blurred cells (cell centres at integers)
     ty = (np.arange(h) + 0.5 + pad - f0) / s - 0.5 - Rc
     tx = (np.arange(w) + 0.5 + pad - f0) / s - 0.5 - Rc
@@ -163,9 +182,9 @@ def _blur_layer(layer: Layer, rho: float, box, canvas, settings: CompositeSettin
         kc = _reduced_kernel(rho, s, settings, cell)
         pad = (_k.kernel_radius(kc) + 2) * s
         padded = _padded_region(layer, canvas, box, pad)
-        return _blur_reduced(padded, pad, box[1] - box[0], box[3] - box[2], s, kc, settings.conv)
+        return _blur_reduced(padded, pad, box[1] - box[0], box[3] - box[2], s, kc, settings)
     k = _layer_kernel(rho, settings, cell)
-    return _k.correlate(_padded_region(layer, canvas, box, _k.kernel_radius(k)), k, settings.conv)
+    return _correlate(_padded_region(layer, canvas, box, _k.kernel_radius(k)), k, settings)
 
 
 def composite(mpi: MPI, blur_parameter: float, focus_disparity: float,

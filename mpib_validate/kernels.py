@@ -95,11 +95,72 @@ def splat(points: np.ndarray) -> np.ndarray:
 
 @functools.lru_cache(maxsize=512)
 def _disk_cached(radius_q: int, cell) -> np.ndarray:
-    r = radius_q / 1024.0
+    r = abs(radius_q) / 1024.0
     if r == 0.0:
         return np.ones((1, 1))
-    pts = disk_points(r, cell)
-    return splat(pts)
+    k = splat(disk_points(math.copysign(r, radius_q), cell))
+    if cell is None:
+        k = _exact_interior(k, r)
+    return k
+
+
+def _exact_interior(k: np.ndarray, r: float) -> np.ndarray:
+    """Set the taps whose tent support ``[q - 1, q + 1]^2`` lies inside the disk to their
+    exact value ``1 / (pi r^2)``, and rescale the others so that the kernel sums to one.
+
+    The splat estimates those taps to ~1e-4; the exact plateau also lets a row of the
+    kernel be written as a few nested boxes (see :func:`row_boxes`).
+    """
+    R = kernel_radius(k)
+    q = np.arange(-R, R + 1, dtype=np.float64)
+    far = np.maximum(np.abs(q)[None, :] + 1.0, 0.0) ** 2 + (np.abs(q)[:, None] + 1.0) ** 2
+    inside = far <= r * r
+    if not inside.any():
+        return k
+    plateau = 1.0 / (math.pi * r * r)
+    out = k.copy()
+    out[inside] = plateau
+    rest = 1.0 - plateau * inside.sum()
+    edge = k[~inside].sum()
+    out[~inside] *= rest / edge
+    return out
+
+
+def row_boxes(kernel: np.ndarray, rel_tol: float = 1e-7) -> list[tuple[int, int, int, float]]:
+    """Write a kernel as a sum of row boxes ``(dy, a, b, h)``: weight ``h`` on taps
+    ``dx in [a, b]`` of row ``dy`` (offsets from the centre).
+
+    Each row's profile is decomposed into nested intervals (a "staircase": one box per
+    rise). Values within ``rel_tol`` of the kernel's peak of each other are merged
+    first, an error far below float32 resolution; a disk row with an exact plateau
+    becomes ~3 boxes. Used by the gather-based (Dr.Jit) convolution with row prefix sums.
+    """
+    R = kernel_radius(kernel)
+    quantum = rel_tol * float(np.abs(kernel).max())
+    q = np.round(kernel / quantum) * quantum if quantum > 0 else kernel
+    boxes = []
+    for iy in range(kernel.shape[0]):
+        row = q[iy]
+        stack = []  # open boxes: [start, height]
+        prev = 0.0
+        for ix in range(row.size + 1):
+            v = row[ix] if ix < row.size else 0.0
+            if v > prev:
+                stack.append([ix, v - prev])
+            elif v < prev:
+                drop = prev - v
+                while drop > 1e-300 and stack:
+                    start, h = stack[-1]
+                    if h <= drop + 1e-300:
+                        stack.pop()
+                        boxes.append((iy - R, start - R, ix - 1 - R, h))
+                        drop -= h
+                    else:
+                        stack[-1][1] = h - drop
+                        boxes.append((iy - R, start - R, ix - 1 - R, drop))
+                        drop = 0.0
+            prev = v
+    return boxes
 
 
 def disk_kernel(rho: float, cell: tuple[int, int, int] | None = None) -> np.ndarray:

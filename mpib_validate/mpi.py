@@ -101,7 +101,7 @@ class MPI:
         rows = np.flatnonzero(nz.any(axis=1))
         cols = np.flatnonzero(nz.any(axis=0))
         r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
-        crop = np.ascontiguousarray(rgba[r0:r1, c0:c1], dtype=np.float32)
+        crop = np.array(rgba[r0:r1, c0:c1], dtype=np.float32, order="C", copy=True)
         self.layers.append(Layer(float(disparity), crop, y0 + int(r0), x0 + int(c0)))
         self.layers.sort(key=lambda l: l.disparity)
 
@@ -227,12 +227,13 @@ def layers_from_cards(scene: Scene, planes: np.ndarray | None = None,
         extra = adaptive_planes(tilted, cam.blur_parameter) if tilted else []
         planes = np.unique(np.concatenate([fronto, extra]))
     planes = np.asarray(planes, np.float64)
-    acc = np.zeros((len(planes), hc, wc, 4), np.float32)
 
     def centre_d(card):
         x0, x1, y0, y1 = card.extent(cam)
         return float(card.plane.disparity(0.5 * (x0 + x1), 0.5 * (y0 + y1)))
 
+    # Each card's share of every plane, on the part of the card inside the canvas.
+    shares = []  # (box, colour, [(plane index map, alpha)]), far card first
     for card in sorted(scene.cards, key=centre_d):  # far to near: nearer goes "over"
         ox, oy = card.offset[0] + margin, card.offset[1] + margin
         h, w = card.rgba.shape[:2]
@@ -246,26 +247,35 @@ def layers_from_cards(scene: Scene, planes: np.ndarray | None = None,
         xs = np.arange(cx0, cx1) + 0.5 - margin - 0.5 * W
         d = card.plane.disparity(xs[None, :], ys[:, None]) * np.ones_like(alpha)
         if split == "nearest":
-            idx = np.abs(d[..., None] - planes).argmin(axis=-1)
-            shares = [(idx, alpha)]
+            parts = [(np.abs(d[..., None] - planes).argmin(axis=-1), alpha)]
         elif split == "linear":
             idx, a_lo, a_hi = split_between_planes(d, alpha, planes)
-            shares = [(idx, a_lo), (np.minimum(idx + 1, len(planes) - 1), a_hi)]
+            parts = [(idx, a_lo), (np.minimum(idx + 1, len(planes) - 1), a_hi)]
         else:
             raise ValueError(f"split must be 'linear' or 'nearest', got {split!r}")
-        colour = tex[..., :3].astype(np.float64)
-        for index, a in shares:
-            for p in np.unique(index[a > 0]):
+        shares.append(((cy0, cy1, cx0, cx1), tex[..., :3].astype(np.float64), parts))
+
+    # One plane at a time, so memory stays at one canvas whatever the plane count.
+    mpi = MPI(H, W, margin)
+    layer = np.zeros((hc, wc, 4), np.float32)
+    for p, d_p in enumerate(planes):
+        used = False
+        for (cy0, cy1, cx0, cx1), colour, parts in shares:
+            for index, a in parts:
                 m = (index == p) & (a > 0)
-                piece = np.zeros((cy1 - cy0, cx1 - cx0, 4), np.float64)
+                if not m.any():
+                    continue
+                if not used:
+                    layer[:] = 0.0
+                    used = True
+                piece = np.zeros(colour.shape[:2] + (4,), np.float64)
                 piece[..., :3][m] = colour[m] * a[m, None]
                 piece[..., 3][m] = a[m]
-                dst = acc[p, cy0:cy1, cx0:cx1]
+                dst = layer[cy0:cy1, cx0:cx1]
                 dst *= (1.0 - piece[..., 3:4]).astype(np.float32)
                 dst += piece.astype(np.float32)
-    mpi = MPI(H, W, margin)
-    for p, d in enumerate(planes):
-        mpi.add(float(d), acc[p], 0, 0)
+        if used:
+            mpi.add(float(d_p), layer, 0, 0)
     return mpi
 
 

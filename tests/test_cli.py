@@ -18,7 +18,7 @@ def mpib(*args, cwd=None):
 
 
 def test_every_subcommand_has_help():
-    for sub in ("generate", "render", "demo", "bench", "backends"):
+    for sub in ("generate", "render", "compare", "demo", "bench", "backends"):
         r = mpib(sub, "--help")
         assert r.returncode == 0 and "usage: mpib " + sub in r.stdout
 
@@ -61,3 +61,25 @@ def test_backends_reports_json():
     assert r.returncode == 0
     report = json.loads(r.stdout)
     assert report["numpy"]["runs_as"] == "numpy"
+
+
+def test_compare(tmp_path):
+    from mpib_validate.exr import channels_from_rgba, write_exr
+
+    rng = np.random.default_rng(0)
+    a = (0.8 * rng.random((20, 24, 4))).astype(np.float32)  # + 0.1 stays below 1
+    b = a.copy()
+    b[5:10, 5:10, :3] += 0.1
+    write_exr(tmp_path / "a.exr", channels_from_rgba(a))
+    write_exr(tmp_path / "b.exr", channels_from_rgba(b))
+    mask = np.zeros((20, 24), np.float32)
+    mask[5:10, 5:10] = 1
+    write_exr(tmp_path / "m.exr", {"Y": mask})
+    r = mpib("compare", tmp_path / "a.exr", tmp_path / "b.exr", "--mask", tmp_path / "m.exr", "--json")
+    assert r.returncode == 0, r.stderr
+    res = json.loads(r.stdout)
+    # inside the mask every colour value is off by 0.1: PSNR_ob = 20 dB (float32 rounding)
+    assert res["psnr_ob"] == pytest.approx(20.0, abs=1e-4) and res["psnr"] > res["psnr_ob"]
+    write_exr(tmp_path / "c.exr", channels_from_rgba(a[:10]))
+    r = mpib("compare", tmp_path / "a.exr", tmp_path / "c.exr")
+    assert r.returncode == 2 and "image sizes differ" in r.stderr and "c.exr" in r.stderr

@@ -4,10 +4,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
+SUITES = ("tracer", "compositor")
 
-def run_bench(out: Path, suite: str = "tracer", quick: bool = True) -> dict:
-    if suite == "tracer":
-        from .tracer import run
 
-        return run(Path(out), quick=quick)
-    raise ValueError(f"unknown benchmark suite {suite!r}")
+def run_bench(out: Path, suite: str = "all", quick: bool = True) -> dict:
+    results = {}
+    for name in (SUITES if suite == "all" else (suite,)):
+        if name == "tracer":
+            from .tracer import run
+        elif name == "compositor":
+            from .compositor import run
+        else:
+            raise ValueError(f"unknown benchmark suite {name!r}; choose from {SUITES} or all")
+        results[name] = run(Path(out), quick=quick)
+    return results
