@@ -296,3 +296,27 @@ def mpi_to_scene(mpi: MPI, camera) -> Scene:
         cards.append(Card(f"layer{i:03d}", straight, Plane.fronto(max(l.disparity, 1e-9)),
                           (l.x0 - mpi.margin, l.y0 - mpi.margin)))
     return Scene(camera, cards, {"from": "mpi"})
+
+
+def save_mpi(mpi: MPI, path) -> None:
+    """Write an MPI to a ``.npz`` file (atomically): sizes, disparities, boxes, layers."""
+    from .atomic import atomic_path
+
+    arrays = {"meta": np.array([mpi.height, mpi.width, mpi.margin, len(mpi.layers)], np.int64)}
+    for i, l in enumerate(mpi.layers):
+        arrays[f"rgba{i}"] = l.rgba
+        arrays[f"where{i}"] = np.array([l.disparity, l.y0, l.x0], np.float64)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
+
+
+def load_mpi(path) -> MPI:
+    """Read an MPI written by :func:`save_mpi`."""
+    with np.load(path) as z:
+        h, w, margin, n = (int(v) for v in z["meta"])
+        mpi = MPI(h, w, margin)
+        for i in range(n):
+            d, y0, x0 = z[f"where{i}"]
+            mpi.layers.append(Layer(float(d), z[f"rgba{i}"], int(y0), int(x0)))
+    return mpi
