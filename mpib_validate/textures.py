@@ -108,9 +108,18 @@ def _subpixel_grid(h: int, w: int, s: int = _SS) -> tuple[np.ndarray, np.ndarray
 
 def _supersample(inside: Callable[[np.ndarray, np.ndarray], np.ndarray], h: int, w: int,
                  s: int = _SS) -> np.ndarray:
-    """Area coverage of the shape ``inside(y, x) -> bool`` per pixel, in [0, 1]."""
+    """Area coverage of the shape ``inside(y, x) -> bool`` per pixel, in [0, 1].
+
+    Computed in bands of output rows so that memory stays ~64 rows of sub-samples."""
     y, x = _subpixel_grid(h, w, s)
-    return _block_mean(np.broadcast_to(inside(y, x), (h * s, w * s)).astype(np.float64), s)
+    out = np.empty((h, w), np.float64)
+    band = 64
+    for r0 in range(0, h, band):
+        r1 = min(h, r0 + band)
+        yb = y[r0 * s:r1 * s]
+        out[r0:r1] = _block_mean(
+            np.broadcast_to(inside(yb, x), ((r1 - r0) * s, w * s)).astype(np.float64), s)
+    return out
 
 
 def _rotate(y, x, theta: float):

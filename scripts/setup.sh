@@ -22,5 +22,5 @@ fi
 "$PY" -c 'import sys; assert sys.version_info[:2] == (3, 11), "Python 3.11 is required, got %s" % sys.version' 
 [ -x "$VENV/bin/python" ] || "$PY" -m venv "$VENV"
 "$VENV/bin/python" -m pip install -q --disable-pip-version-check --upgrade "pip==25.2"
-"$VENV/bin/python" -m pip install -q --disable-pip-version-check -c constraints.txt -e ".[dev]"
+"$VENV/bin/python" -m pip install -q --disable-pip-version-check -c constraints.txt -e ".[all]"
 echo "setup: environment ready in $VENV"
