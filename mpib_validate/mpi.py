@@ -110,6 +110,11 @@ class MPI:
 # Plane placement
 
 
+#: Content whose blur radius is within this many pixels of a plane's goes wholly to that
+#: plane (see :func:`split_between_planes`); a radius error of 0.02 px is invisible.
+SNAP_PX = 0.02
+
+
 def uniform_planes(n: int = 32, d_max: float = 1.0) -> np.ndarray:
     """The paper's planes: ``d_i = (i + 0.5) / n * d_max``, far to near."""
     return (np.arange(n) + 0.5) / n * d_max
@@ -145,7 +150,8 @@ def adaptive_planes(intervals, blur_parameter: float, tolerance_px: float = 0.25
     return np.unique(np.asarray(planes, np.float64))
 
 
-def split_between_planes(d: np.ndarray, alpha: np.ndarray, planes: np.ndarray):
+def split_between_planes(d: np.ndarray, alpha: np.ndarray, planes: np.ndarray,
+                         snap: float = 0.0):
     """Share content of disparity ``d`` and alpha ``alpha`` between its two neighbouring
     planes so that compositing gives back alpha and Eq. 16 gives back ``d``.
 
@@ -155,6 +161,11 @@ def split_between_planes(d: np.ndarray, alpha: np.ndarray, planes: np.ndarray):
     opaque: no cracks between slabs) and ``d_hi a_hi + d_lo (1 - a_hi) a_lo = d alpha``
     (Eq. 16). Both layers keep the pixel's own colour. Disparities outside the planes'
     range go wholly to the first or last plane.
+
+    The far plane is an opaque backing wherever the content is opaque (``w < 1``), which
+    is what keeps slabs of a tilted surface from cracking; but it would also duplicate
+    opaque content that lies on a plane up to rounding. Content within ``snap`` (in
+    disparity) of a plane therefore goes wholly to that plane.
 
     Returns ``(index_lo, alpha_lo, alpha_hi)``: the far plane's index and both alphas.
     """
@@ -166,6 +177,8 @@ def split_between_planes(d: np.ndarray, alpha: np.ndarray, planes: np.ndarray):
     idx = np.clip(np.searchsorted(planes, d, side="right") - 1, 0, len(planes) - 2)
     lo, hi = planes[idx], planes[idx + 1]
     w = np.clip((d - lo) / (hi - lo), 0.0, 1.0)
+    if snap > 0:
+        w = np.where(d - lo <= snap, 0.0, np.where(hi - d <= snap, 1.0, w))
     a_hi = w * alpha
     denom = 1.0 - a_hi
     # denom = 0 only for opaque content exactly on the near plane: nothing goes behind it
@@ -232,8 +245,7 @@ def layers_from_cards(scene: Scene, planes: np.ndarray | None = None,
         x0, x1, y0, y1 = card.extent(cam)
         return float(card.plane.disparity(0.5 * (x0 + x1), 0.5 * (y0 + y1)))
 
-    # Each card's share of every plane, on the part of the card inside the canvas.
-    shares = []  # (box, colour, [(plane index map, alpha)]), far card first
+    sheets = []
     for card in sorted(scene.cards, key=centre_d):  # far to near: nearer goes "over"
         ox, oy = card.offset[0] + margin, card.offset[1] + margin
         h, w = card.rgba.shape[:2]
@@ -242,21 +254,53 @@ def layers_from_cards(scene: Scene, planes: np.ndarray | None = None,
         if cy0 >= cy1 or cx0 >= cx1:
             continue
         tex = card.rgba[cy0 - oy:cy1 - oy, cx0 - ox:cx1 - ox]
-        alpha = tex[..., 3].astype(np.float64)
         ys = np.arange(cy0, cy1) + 0.5 - margin - 0.5 * H
         xs = np.arange(cx0, cx1) + 0.5 - margin - 0.5 * W
-        d = card.plane.disparity(xs[None, :], ys[:, None]) * np.ones_like(alpha)
+        d = card.plane.disparity(xs[None, :], ys[:, None]) * np.ones(tex.shape[:2])
+        sheets.append(Sheet((cy0, cx0), tex[..., :3], tex[..., 3], d))
+    return layers_from_sheets(sheets, planes, H, W, margin, split,
+                              snap=SNAP_PX / cam.blur_parameter)
+
+
+@dataclass
+class Sheet:
+    """Content to be cut into planes: straight colour, alpha and disparity per pixel
+    over a box of the canvas starting at ``origin`` (row, column)."""
+
+    origin: tuple[int, int]
+    colour: np.ndarray  # (h, w, 3) straight, linear radiance
+    alpha: np.ndarray  # (h, w)
+    disparity: np.ndarray  # (h, w), 1/scene-unit
+
+
+def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
+                       split: str = "linear", snap: float = 0.0) -> MPI:
+    """Cut sheets (given far to near) into planes and combine them into an MPI.
+
+    Each pixel of a sheet is shared between its two neighbouring planes by
+    :func:`split_between_planes` (``split="linear"``) or goes wholly to the nearest plane
+    (``split="nearest"``); ``snap`` (disparity) is passed on to the split. On each plane
+    the sheets are combined with "over", later (nearer) sheets on top. Memory: one
+    canvas-sized plane at a time.
+    """
+    planes = np.asarray(planes, np.float64)
+    hc, wc = height + 2 * margin, width + 2 * margin
+    shares = []
+    for sh in sheets:
+        alpha = np.asarray(sh.alpha, np.float64)
+        d = np.asarray(sh.disparity, np.float64)
         if split == "nearest":
             parts = [(np.abs(d[..., None] - planes).argmin(axis=-1), alpha)]
         elif split == "linear":
-            idx, a_lo, a_hi = split_between_planes(d, alpha, planes)
+            idx, a_lo, a_hi = split_between_planes(d, alpha, planes, snap)
             parts = [(idx, a_lo), (np.minimum(idx + 1, len(planes) - 1), a_hi)]
         else:
             raise ValueError(f"split must be 'linear' or 'nearest', got {split!r}")
-        shares.append(((cy0, cy1, cx0, cx1), tex[..., :3].astype(np.float64), parts))
+        y0, x0 = sh.origin
+        box = (y0, y0 + alpha.shape[0], x0, x0 + alpha.shape[1])
+        shares.append((box, np.asarray(sh.colour, np.float64), parts))
 
-    # One plane at a time, so memory stays at one canvas whatever the plane count.
-    mpi = MPI(H, W, margin)
+    mpi = MPI(height, width, margin)
     layer = np.zeros((hc, wc, 4), np.float32)
     for p, d_p in enumerate(planes):
         used = False

@@ -1,0 +1,156 @@
+"""Occlusion regions and the hidden-background fill, with no learned weights.
+
+A colour + depth render holds nothing behind the foreground, but a defocused view sees
+some of it. Where a foreground pixel at disparity ``d_n`` borders background at ``d_f``
+(a disparity jump), the aperture shifts the two layers against each other by up to
+``A (d_n - d_f)`` pixels, so background hidden up to that distance behind the
+foreground edge becomes visible. :func:`occlusion_region` finds those pixels the
+paper's way: a disparity-gradient seed, grown towards the occluder by that amount
+(exact, since the jump and ``A`` are known; it does not depend on the focus, so one
+MPI serves every focus setting).
+
+:func:`push_pull` fills them with a weighted push-pull pyramid (Gortler et al. 1996)
+that draws only from pixels on the farther side of the edge, so the foreground's
+colour never leaks into the background behind it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def disparity_jumps(disparity: np.ndarray, threshold: float):
+    """Near-side pixels of 4-neighbour disparity jumps larger than ``threshold``.
+
+    Returns ``(seed, far, near)``: boolean map of the near-side pixels, the smallest
+    far-side disparity next to each (inf elsewhere), and the largest near-side disparity
+    next to each far-side pixel (-inf elsewhere).
+    """
+    D = np.asarray(disparity, np.float64)
+    far = np.full(D.shape, np.inf)
+    near = np.full(D.shape, -np.inf)
+    for axis in (0, 1):
+        a = [slice(None)] * 2
+        b = [slice(None)] * 2
+        a[axis], b[axis] = slice(None, -1), slice(1, None)
+        a, b = tuple(a), tuple(b)
+        da, db = D[a], D[b]
+        jump_ab = da - db > threshold  # a nearer than b
+        jump_ba = db - da > threshold
+        far[a] = np.where(jump_ab, np.minimum(far[a], db), far[a])
+        far[b] = np.where(jump_ba, np.minimum(far[b], da), far[b])
+        near[b] = np.where(jump_ab, np.maximum(near[b], da), near[b])
+        near[a] = np.where(jump_ba, np.maximum(near[a], db), near[a])
+    return np.isfinite(far), far, near
+
+
+def occlusion_region(disparity: np.ndarray, blur_parameter: float, threshold: float,
+                     levels: float = 1.5):
+    """Pixels on the near side of a disparity jump, within ``A (d_near - d_far)`` of it.
+
+    Seeds are grouped by radius into geometric buckets (ratio ``levels``); each bucket is
+    grown with one Euclidean distance transform by its largest radius, so the region is
+    never smaller than the exact union of disks (at most ``levels`` times wider).
+    Only pixels nearer than the far side of their nearest seed (by more than half the
+    threshold) belong to the region.
+
+    Returns ``(region, far_disparity)``: the boolean region and, for every pixel, the
+    far-side disparity of its nearest seed (the disparity of what is hidden there;
+    ``nan`` when the image has no jump).
+    """
+    from scipy import ndimage
+
+    D = np.asarray(disparity, np.float64)
+    seed, far, _ = disparity_jumps(D, threshold)
+    region = np.zeros(D.shape, bool)
+    if not seed.any():
+        return region, np.full(D.shape, np.nan)
+    radius = np.where(seed, blur_parameter * (D - np.where(seed, far, D)), 0.0)
+    _, (iy, ix) = ndimage.distance_transform_edt(~seed, return_indices=True)
+    far_field = far[iy, ix]
+    r = radius[seed]
+    lo, hi = max(r.min(), 1.0), max(r.max(), 1.0)
+    n_levels = 1 + int(math.ceil(math.log(hi / lo) / math.log(levels))) if hi > lo else 1
+    edges = lo * levels ** np.arange(n_levels + 1)
+    for k in range(n_levels):
+        bucket = seed & (radius <= edges[k + 1]) & ((radius > edges[k]) if k else True)
+        if not bucket.any():
+            continue
+        dist = ndimage.distance_transform_edt(~bucket)
+        region |= dist <= math.ceil(radius[bucket].max())
+    region &= D > far_field + 0.5 * threshold
+    return region, far_field
+
+
+def push_pull(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Fill a ``(H, W, C)`` image from the pixels with weight > 0 (Gortler et al. 1996).
+
+    Pull: build a pyramid of weighted 2x2 means, each level's weight clamped to 1.
+    Push: from coarse to fine, ``v = w v + (1 - w) up(v_coarse)`` with bilinear ``up``.
+    Pixels with weight 1 keep their value exactly; where no pixel has weight, zeros.
+    """
+    from scipy import ndimage
+
+    v = np.asarray(values, np.float64)
+    w = np.clip(np.asarray(weights, np.float64), 0.0, 1.0)
+    if not (w > 0).any():
+        return np.zeros_like(v)
+    pyr = []
+    cur_v, cur_w = v * w[..., None], w
+    while True:
+        pyr.append((cur_v, cur_w))
+        h, wd = cur_w.shape
+        if h <= 1 and wd <= 1:
+            break
+        ph, pw = h + (h % 2), wd + (wd % 2)
+        pv = np.zeros((ph, pw, v.shape[2]))
+        pwgt = np.zeros((ph, pw))
+        pv[:h, :wd], pwgt[:h, :wd] = cur_v, cur_w
+        sv = pv.reshape(ph // 2, 2, pw // 2, 2, -1).sum(axis=(1, 3))
+        sw = pwgt.reshape(ph // 2, 2, pw // 2, 2).sum(axis=(1, 3))
+        # normalised colour times clamped weight (premultiplied again)
+        mean = np.divide(sv, sw[..., None], out=np.zeros_like(sv), where=sw[..., None] > 0)
+        cw = np.minimum(sw, 1.0)
+        cur_v, cur_w = mean * cw[..., None], cw
+    # push
+    filled = np.divide(pyr[-1][0], pyr[-1][1][..., None], out=np.zeros_like(pyr[-1][0]),
+                       where=pyr[-1][1][..., None] > 0)
+    for lv, lw in reversed(pyr[:-1]):
+        h, wd = lw.shape
+        zy = (np.arange(h) + 0.5) / 2 - 0.5
+        zx = (np.arange(wd) + 0.5) / 2 - 0.5
+        yy, xx = np.meshgrid(zy, zx, indexing="ij")
+        up = np.stack([ndimage.map_coordinates(filled[..., c], [yy, xx], order=1, mode="nearest")
+                       for c in range(filled.shape[2])], axis=-1)
+        own = np.divide(lv, lw[..., None], out=np.zeros_like(lv), where=lw[..., None] > 0)
+        filled = lw[..., None] * own + (1.0 - lw[..., None]) * up
+    return filled
+
+
+def fill_hidden(colour: np.ndarray, disparity: np.ndarray, region: np.ndarray,
+                far_disparity: np.ndarray, threshold: float, exclude=None):
+    """Colour and disparity of the background hidden in ``region``.
+
+    Sources are pixels outside ``region`` (and outside ``exclude``, e.g. mixed edge
+    pixels) whose disparity is no nearer than the far side of their nearest jump (plus
+    half the threshold): only the farther side feeds the fill.
+
+    Colour is averaged in the compressed domain ``c / (1 + c)`` (then expanded back),
+    so that an HDR highlight near the edge is not smeared over the whole fill: the fill
+    guesses ordinary background, not bokeh balls.
+
+    Returns ``(colour (H, W, 3), disparity (H, W))`` filled everywhere (use them inside
+    the region).
+    """
+    D = np.asarray(disparity, np.float64)
+    ref = np.where(np.isnan(far_disparity), np.inf, far_disparity)
+    source = ~region & (D <= ref + 0.5 * threshold)
+    if exclude is not None:
+        source &= ~exclude
+    c = np.maximum(np.asarray(colour, np.float64), 0.0)
+    stacked = np.concatenate([c / (1.0 + c), D[..., None]], axis=-1)
+    out = push_pull(stacked, source.astype(np.float64))
+    v = np.clip(out[..., :3], 0.0, 1.0 - 1e-9)
+    return v / (1.0 - v), out[..., 3]

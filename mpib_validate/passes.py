@@ -1,0 +1,232 @@
+"""From rendered passes (colour + depth) to an MPI, with the hidden background filled.
+
+The input is what a renderer gives: an all-in-focus colour image and one depth per
+pixel (Blender's Combined and Depth passes), nothing behind the foreground. The steps:
+
+1. :func:`depth_to_disparity`: ``d = 1/Z``; depth at or beyond ``far_limit`` (Cycles
+   writes 1e10 for the background) is infinitely far, ``d = 0``.
+2. Occlusion regions and the hidden-background fill (:mod:`mpib_validate.fill`).
+3. Edge pixels: an anti-aliased pixel on a depth edge mixes foreground and background
+   colour, but its depth is one or the other. Such a pixel is unmixed: with the
+   foreground colour ``c_n`` (filled from nearby pure foreground) and the background
+   colour ``c_f`` (the hidden-background fill), its coverage is the projection
+   ``a = <c - c_f, c_n - c_f> / |c_n - c_f|^2``, kept in [1/4, 1] where the depth says
+   near and in [0, 3/4] where it says far. The foreground plane gets alpha ``a`` and the
+   background an opaque layer behind it; the side the depth names takes the rest of the
+   colour, ``(c - (1 - a) c_f) / a`` or ``(c - a c_n) / (1 - a)``, so that the pinhole
+   composite is the pixel exactly. No fringe of the wrong colour is then blurred with
+   the other layer.
+4. The sheets (hidden background, unmixed background parts, visible pixels, unmixed
+   foreground parts, far to near) are cut into planes with
+   :func:`mpib_validate.mpi.layers_from_sheets`: each pixel is shared between its two
+   neighbouring planes so that Eq. 16 gives back its disparity.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import fill as _fill
+from .mpi import (SNAP_PX, MPI, Sheet, adaptive_planes, layers_from_sheets, plane_spacing,
+                  uniform_planes)
+
+
+class PassError(ValueError):
+    """Unusable colour or depth input; the message names the file."""
+
+
+DEFAULT_FAR_LIMIT = 1e9
+
+
+def depth_to_disparity(depth: np.ndarray, far_limit: float = DEFAULT_FAR_LIMIT,
+                       source: str = "depth") -> np.ndarray:
+    """Disparity ``1/Z`` (1/scene-unit) from planar depth ``Z`` (scene units).
+
+    Depth ``>= far_limit`` (or +inf) is infinitely far: disparity 0. Raises
+    :class:`PassError` naming ``source`` for NaN, for depth ``<= 0``, and for depth that
+    is everywhere at infinity (nothing to refocus on).
+    """
+    Z = np.asarray(depth, np.float64)
+    nan = np.isnan(Z)
+    if nan.any():
+        y, x = np.argwhere(nan)[0]
+        raise PassError(f"{source}: depth is NaN at {int(nan.sum())} pixel(s), first at "
+                        f"(row {y}, column {x})")
+    bad = Z <= 0
+    if bad.any():
+        y, x = np.argwhere(bad)[0]
+        raise PassError(f"{source}: depth must be > 0; {int(bad.sum())} pixel(s) are <= 0 "
+                        f"(min {Z.min():.4g} at row {y}, column {x})")
+    far = Z >= far_limit
+    if far.all():
+        raise PassError(f"{source}: depth is at infinity (>= {far_limit:g}) everywhere; "
+                        f"was the Depth pass rendered with geometry in view?")
+    return np.where(far, 0.0, 1.0 / np.where(far, 1.0, Z))
+
+
+@dataclass
+class PassesSettings:
+    """How to build the MPI.
+
+    Attributes:
+        tolerance_px: largest blur-radius quantisation error of the plane placement.
+        planes: ``adaptive`` (only where content is) or ``uniform`` (``n_uniform`` planes).
+        jump_px: a neighbour pair is a depth edge when its blur-radius difference
+            ``A |d_1 - d_2|`` exceeds this (pixels).
+        fill: fill the hidden background (off: visible-only layers).
+        unmix_edges: unmix anti-aliased edge pixels (off: each pixel goes whole to its
+            own depth, as in the official pipeline). Needs ``fill``: the background
+            part of a near-side edge pixel is the fill.
+    """
+
+    tolerance_px: float = 0.5
+    planes: str = "adaptive"
+    n_uniform: int = 32
+    jump_px: float = 1.0
+    fill: bool = True
+    unmix_edges: bool = True
+
+
+@dataclass
+class PassesInfo:
+    planes: int = 0
+    fill_fraction: float = 0.0
+    edge_fraction: float = 0.0
+    seconds: float = 0.0
+    disparity_range: tuple = (0.0, 0.0)
+    extra: dict = field(default_factory=dict)
+
+
+def _content_intervals(values: np.ndarray, step: float) -> list[tuple[float, float]]:
+    """Disparity intervals that hold content: sorted values split where a gap exceeds
+    one plane step."""
+    v = np.unique(np.round(np.asarray(values, np.float64).ravel(), 12))
+    if v.size == 0:
+        return []
+    breaks = np.flatnonzero(np.diff(v) > step)
+    starts = np.concatenate([[0], breaks + 1])
+    ends = np.concatenate([breaks, [v.size - 1]])
+    return [(float(v[a]), float(v[b])) for a, b in zip(starts, ends)]
+
+
+#: An edge pixel is unmixed only if ``a c_n + (1 - a) c_f`` explains its colour to within
+#: this fraction of the contrast ``|c_n - c_f|``; otherwise it stays whole.
+UNMIX_RESIDUAL = 0.2
+
+
+def _unmix(colour, near_colour, far_colour):
+    """Coverage ``a`` of the near colour in ``c = a c_n + (1 - a) c_f`` (least squares),
+    clamped to [0, 1], and whether that explains ``c`` (see ``UNMIX_RESIDUAL``)."""
+    dn = near_colour - far_colour
+    num = ((colour - far_colour) * dn).sum(axis=-1)
+    den = (dn * dn).sum(axis=-1)
+    a = np.clip(np.divide(num, den, out=np.ones_like(num), where=den > 1e-12), 0.0, 1.0)
+    resid = np.linalg.norm(colour - far_colour - a[..., None] * dn, axis=-1)
+    explained = (den > 1e-12) & (resid <= UNMIX_RESIDUAL * np.sqrt(den))
+    return a, explained
+
+
+#: Pure pixels further than this (px) from an edge pixel do not inform its unmixing.
+UNMIX_REACH = 3.0
+
+
+def _nearest_value(values: np.ndarray, source: np.ndarray):
+    """Each pixel takes the value of its nearest ``source`` pixel (Euclidean); also
+    returns that distance in pixels (inf where there is no source)."""
+    from scipy import ndimage
+
+    if not source.any():
+        return np.zeros_like(values), np.full(source.shape, np.inf)
+    dist, (iy, ix) = ndimage.distance_transform_edt(~source, return_indices=True)
+    return values[iy, ix], dist
+
+
+def layers_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter: float,
+                       settings: PassesSettings = PassesSettings()) -> tuple[MPI, PassesInfo]:
+    """Build the MPI of a colour + disparity image (see the module docstring).
+
+    Args:
+        colour: ``(H, W, 3)`` linear radiance (all in focus).
+        disparity: ``(H, W)`` 1/scene-unit, 0 = infinitely far.
+        blur_parameter: ``A`` (pixels per unit disparity); it sets the plane spacing and
+            how far behind each edge the background is filled (both focus-independent).
+    """
+    t0 = time.perf_counter()
+    rgb = np.asarray(colour, np.float64)[..., :3]
+    D = np.asarray(disparity, np.float64)
+    if rgb.shape[:2] != D.shape:
+        raise PassError(f"colour is {rgb.shape[1]}x{rgb.shape[0]} but depth is "
+                        f"{D.shape[1]}x{D.shape[0]}")
+    if not blur_parameter > 0:
+        raise PassError(f"the blur parameter must be > 0 (a zero aperture has no defocus), "
+                        f"got {blur_parameter}")
+    H, W = D.shape
+    thr = settings.jump_px / blur_parameter
+    info = PassesInfo(disparity_range=(float(D.min()), float(D.max())))
+
+    region, far_field = _fill.occlusion_region(D, blur_parameter, thr)
+    seed, _, near_next = _fill.disparity_jumps(D, thr)
+    if not settings.fill:
+        region[:] = False
+    unmix = settings.unmix_edges and settings.fill
+    farside = np.isfinite(near_next)
+    band = (seed | farside) if unmix else np.zeros(D.shape, bool)
+
+    sheets_far, sheets_near = [], []
+    visible = ~band
+    if settings.fill and (region.any() or band.any()):
+        # background: filled only from pure pixels on the farther side of the edges
+        bg_rgb, bg_d = _fill.fill_hidden(rgb, D, region, far_field, thr, exclude=band)
+        hidden = region | (band & seed)  # behind the near-side edge pixels too
+        # what is hidden lies on the far side of the nearest edge: its disparity is that
+        # surface's (a push-pull average of depths would invent surfaces in between)
+        hid_d = np.where(np.isnan(far_field), D, np.minimum(far_field, D))
+        sheets_far.append(Sheet((0, 0), bg_rgb, hidden.astype(np.float64),
+                                np.where(hidden, hid_d, D)))
+        if band.any():
+            ref = np.where(np.isnan(far_field), -np.inf, far_field)
+            # nearest pure pixel of each side: local colours, no averaging across texture
+            near_c, near_dist = _nearest_value(rgb, visible & (D > ref + 0.5 * thr))
+            far_own, far_dist = _nearest_value(rgb, visible & ~(D > ref + 0.5 * thr))
+            far_c = np.where(seed[..., None], bg_rgb, far_own)
+            # colours from further than UNMIX_REACH px say nothing about this pixel
+            local = (near_dist <= UNMIX_REACH) & (seed | (far_dist <= UNMIX_REACH))
+            near_d = np.where(farside & ~seed, near_next, D)
+            a, explained = _unmix(rgb, near_c, far_c)
+            # The depth says which side the pixel centre is on: keep a >= 1/4 on the near
+            # side and <= 3/4 on the far side; a pixel the two colours do not explain is
+            # left whole at its own depth.
+            a = np.where(seed, np.clip(a, 0.25, 1.0), np.clip(a, 0.0, 0.75))
+            a = np.where(explained & local, a, np.where(seed, 1.0, 0.0))
+            a = np.where(band, a, 0.0)
+            # the side the depth names takes the rest of the colour, so that the pinhole
+            # composite is the pixel's own colour
+            on_near = seed[..., None]
+            a3 = a[..., None]
+            near_c = np.where(on_near, np.maximum((rgb - (1.0 - a3) * far_c) / np.maximum(a3, 1e-6), 0.0),
+                              near_c)
+            far_c = np.where(~on_near, np.maximum((rgb - a3 * near_c) / np.maximum(1.0 - a3, 1e-6), 0.0),
+                             far_c)
+            bg_part = band & ~seed  # far-side pixels keep their own (far) depth
+            sheets_far.append(Sheet((0, 0), far_c, bg_part.astype(np.float64), D))
+            sheets_near.append(Sheet((0, 0), near_c, a, near_d))
+            info.edge_fraction = float(band.mean())
+    sheets = sheets_far + [Sheet((0, 0), rgb, visible.astype(np.float64), D)] + sheets_near
+
+    step = plane_spacing(blur_parameter, settings.tolerance_px)
+    if settings.planes == "uniform":
+        planes = uniform_planes(settings.n_uniform, max(float(D.max()), 1e-9) * (1 + 1e-9))
+    elif settings.planes == "adaptive":
+        values = [sh.disparity[sh.alpha > 0] for sh in sheets]
+        planes = adaptive_planes(_content_intervals(np.concatenate([v.ravel() for v in values]),
+                                                    step), blur_parameter, settings.tolerance_px)
+    else:
+        raise ValueError(f"planes must be 'adaptive' or 'uniform', got {settings.planes!r}")
+    mpi = layers_from_sheets(sheets, planes, H, W, 0, snap=SNAP_PX / blur_parameter)
+    info.planes = len(mpi.layers)
+    info.fill_fraction = float(region.mean())
+    info.seconds = time.perf_counter() - t0
+    return mpi, info
