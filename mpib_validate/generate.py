@@ -52,6 +52,7 @@ class GeneratorSettings:
     object_size: tuple[float, float] = (0.3, 0.6)  # fraction of min(width, height)
     max_tilt: float = 0.35  # varying family: disparity change across an object
     hdr_probability: float = 0.3
+    masks: tuple[str, ...] = _EVERYDAY_MASKS  # alpha-mask kinds to draw from
 
 
 def _u(rng: np.random.Generator, lo_hi) -> float:
@@ -141,7 +142,7 @@ def _draw(rng, seed, family, case, s: GeneratorSettings) -> Scene:
     n_obj = int(rng.integers(s.objects[0], s.objects[1] + 1))
     d_bg = _u(rng, s.background_disparity)
     d_fg = np.sort(rng.uniform(*s.foreground_disparity, size=n_obj))[::-1]  # nearest first
-    masks = [str(rng.choice(_EVERYDAY_MASKS)) for _ in range(n_obj)]
+    masks = [str(rng.choice(s.masks)) for _ in range(n_obj)]
     hdr = [bool(rng.random() < s.hdr_probability) for _ in range(n_obj + 1)]
     tilts: list[float | None] = [None] * n_obj
 

@@ -461,12 +461,14 @@ def trace(scene: Scene, samples: _samples.LensSamples | None = None, *, backend:
 
 def pinhole_maps(scene: Scene) -> dict:
     """Per-pixel maps at pixel centres with a pinhole: ``disparity``, ``depth``, ``layer``,
-    ``card_alpha`` and ``card_disparity`` (see :class:`TraceResult`)."""
+    ``card_alpha``, ``card_disparity`` (see :class:`TraceResult`) and ``card_rgb``
+    (each card's straight colour there)."""
     cam = scene.camera
     xs, ys = cam.pixel_centres()
     x, y = np.meshgrid(xs, ys)
     n = len(scene.cards)
     alpha = np.zeros((n, cam.height, cam.width), np.float32)
+    rgb = np.zeros((n, cam.height, cam.width, 3), np.float32)
     disp = np.zeros((n, cam.height, cam.width), np.float32)
     for k, card in enumerate(scene.cards):
         x0, _, y0, _ = card.extent(cam)
@@ -475,6 +477,7 @@ def pinhole_maps(scene: Scene) -> dict:
         w, h = card.size
         ok = (col >= 0) & (col < w) & (row >= 0) & (row < h)
         alpha[k][ok] = card.rgba[row[ok], col[ok], 3]
+        rgb[k][ok] = card.rgba[row[ok], col[ok], :3]
         disp[k] = card.plane.disparity(x, y)
     # front-most card with alpha >= 0.5 (Cycles' pass_alpha_threshold)
     solid = alpha >= 0.5
@@ -485,7 +488,7 @@ def pinhole_maps(scene: Scene) -> dict:
     d = np.where(has, np.take_along_axis(disp, np.maximum(layer, 0)[None], 0)[0], 0.0)
     depth = np.where(has, 1.0 / np.where(has, d, 1.0), 1e10)
     return {"disparity": d.astype(np.float32), "depth": depth.astype(np.float32),
-            "layer": layer, "card_alpha": alpha, "card_disparity": disp}
+            "layer": layer, "card_alpha": alpha, "card_disparity": disp, "card_rgb": rgb}
 
 
 def render(scene: Scene, samples: _samples.LensSamples | None = None, *, backend: str = "auto",
