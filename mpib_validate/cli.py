@@ -4,6 +4,7 @@ Subcommands:
   generate   make a seeded random card scene (JSON + EXR textures)
   render     render a scene (the Eq. 15 ray tracer) to EXR + PNG preview
   demo       the README's main job on an embedded default scene
+  refocus    refocus a rendered picture (colour + depth) with the MPI compositor
   compare    image metrics between two EXRs
   bench      speed/error measurements, written to a report folder
   backends   which compute backends run on this machine
@@ -108,20 +109,6 @@ def cmd_bench(args) -> int:
     return 0
 
 
-def _read_colour(path: str):
-    """RGB(A) of an EXR: the unprefixed R, G, B or Blender's ``*.Combined.*`` pass."""
-    from .exr import ExrError, read_exr, rgba_from
-
-    img = read_exr(path)
-    if "R" in img.channels:
-        return rgba_from(img)
-    combined = sorted({n.rsplit(".", 1)[0] + "." for n in img.channels if n.endswith("Combined.R")})
-    if len(combined) == 1:
-        return rgba_from(img, combined[0])
-    raise ExrError(f"no colour channels (R, G, B or *.Combined.*) in '{path}'; channels: "
-                   f"{', '.join(sorted(img.channels))}")
-
-
 def _read_mask(path: str, shape) -> "np.ndarray":
     import numpy as np
 
@@ -147,9 +134,10 @@ def _read_mask(path: str, shape) -> "np.ndarray":
 
 def cmd_compare(args) -> int:
     from .metrics import all_metrics
+    from .refocus import read_colour
 
-    a = _read_colour(args.reference)
-    b = _read_colour(args.test)
+    a = read_colour(args.reference, all_in_focus=False)
+    b = read_colour(args.test, all_in_focus=False)
     if a.shape != b.shape:
         raise CliError(f"image sizes differ: '{args.reference}' is {a.shape[1]}x{a.shape[0]}, "
                        f"'{args.test}' is {b.shape[1]}x{b.shape[0]}")
@@ -160,6 +148,60 @@ def cmd_compare(args) -> int:
     else:
         for k, v in res.items():
             print(f"{k:14s} {v:.6g}")
+    return 0
+
+
+def _parse_pixel(text: str) -> tuple[int, int]:
+    try:
+        x, y = (int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a pixel looks like X,Y (e.g. 120,80), got {text!r}") from None
+    return x, y
+
+
+def cmd_refocus(args) -> int:
+    from .atomic import refuse_overwrite
+    from .refocus import (blur_parameter_from_lens, focus_from_pixel, load_passes, refocus,
+                          write_result)
+
+    inputs = [args.input] + ([args.depth] if args.depth else [])
+    refuse_overwrite(args.output, inputs)
+    refuse_overwrite(Path(args.output).with_suffix(".png"), inputs)
+    passes = load_passes(args.input, args.depth)
+    H, W = passes.depth.shape
+    cam = passes.camera
+    if args.blur_parameter is not None:
+        A = args.blur_parameter
+    elif args.fstop is not None or args.focal_mm is not None:
+        if args.fstop is None or args.focal_mm is None:
+            raise CliError("give both --fstop and --focal-mm (and --sensor-mm if not 36)")
+        A = blur_parameter_from_lens(args.fstop, args.focal_mm, W, args.sensor_mm, args.scene_unit_m)
+    elif "blur_parameter" in cam:
+        A = float(cam["blur_parameter"])
+    else:
+        raise CliError(f"no aperture: give --blur-parameter, or --fstop and --focal-mm "
+                       f"('{args.input}' holds no camera settings)")
+    if args.focus_disparity is not None:
+        d_f = args.focus_disparity
+    elif args.focus_depth is not None:
+        if not args.focus_depth > 0:
+            raise CliError(f"--focus-depth must be > 0, got {args.focus_depth}")
+        d_f = 1.0 / args.focus_depth
+    elif args.focus_pixel is not None:
+        d_f = focus_from_pixel(passes, *args.focus_pixel, far_limit=args.far_limit)
+    elif "focus_disparity" in cam:
+        d_f = float(cam["focus_disparity"])
+    else:
+        raise CliError("no focus: give --focus-depth, --focus-disparity or --focus-pixel X,Y")
+    result = refocus(passes, A, d_f, args.preset, args.far_limit)
+    written = write_result(args.output, result, preview=not args.no_preview)
+    i = result.info
+    print(f"refocused {W}x{H} ({args.preset}): {i['planes']} planes, largest blur radius "
+          f"{i['largest_radius_px']:.1f} px, fill {100 * i['fill_fraction']:.1f} % of pixels, "
+          f"edge pixels {100 * i['edge_fraction']:.1f} %, A = {A:.3f} px, d_f = {d_f:.5g}, "
+          f"{i['seconds']:.2f} s")
+    for p in written:
+        print(f"wrote {p}")
     return 0
 
 
@@ -250,6 +292,28 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--json", action="store_true", help="print JSON")
     c.set_defaults(func=cmd_compare)
 
+    f = sub.add_parser("refocus", help="refocus a rendered picture (colour + depth EXR)",
+                       description="Refocus a picture from its colour and depth passes with the "
+                                   "MPI compositor. Input: a Blender multilayer EXR (Combined + "
+                                   "Depth), an mpib render, or colour plus --depth.")
+    f.add_argument("input", help="EXR with colour (and depth, unless --depth)")
+    f.add_argument("-o", "--output", required=True, help="output EXR (a PNG is written beside it)")
+    f.add_argument("--depth", help="separate EXR holding the depth (Z, Depth.Z, Y or R)")
+    g2 = f.add_mutually_exclusive_group()
+    g2.add_argument("--focus-depth", type=float, help="focus distance (scene units)")
+    g2.add_argument("--focus-disparity", type=float, help="focus disparity (1/scene-unit)")
+    g2.add_argument("--focus-pixel", type=_parse_pixel, help="focus on pixel X,Y")
+    f.add_argument("--blur-parameter", type=float, help="A, pixels per unit disparity")
+    f.add_argument("--fstop", type=float, help="f-number N (with --focal-mm)")
+    f.add_argument("--focal-mm", type=float, help="focal length in mm (with --fstop)")
+    f.add_argument("--sensor-mm", type=float, default=36.0, help="sensor width in mm (default 36)")
+    f.add_argument("--scene-unit-m", type=float, default=1.0, help="metres per scene unit (default 1)")
+    f.add_argument("--preset", choices=["draft", "default", "best"], default="default")
+    f.add_argument("--far-limit", type=float, default=1e9,
+                   help="depth at or beyond this is infinitely far (Cycles writes 1e10)")
+    f.add_argument("--no-preview", action="store_true")
+    f.set_defaults(func=cmd_refocus)
+
     k = sub.add_parser("backends", help="which compute backends run here",
                        description="Probe numpy, Dr.Jit LLVM and Dr.Jit CUDA (in subprocesses).")
     k.set_defaults(func=cmd_backends)
@@ -259,12 +323,13 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     from .atomic import OutputError
     from .exr import ExrError
+    from .passes import PassError
     from .scene import SceneError
 
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (CliError, SceneError, ExrError, OutputError, ValueError) as exc:
+    except (CliError, SceneError, ExrError, OutputError, PassError, ValueError) as exc:
         print(f"mpib {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -1,0 +1,38 @@
+"""Named quality presets: plane placement, tolerance, fast paths and the middle setting.
+
+Each preset's speed and error are measured by ``mpib bench --suite refocus`` (the
+README quotes the latest figures); they are not typed in here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from .composite import CompositeSettings
+from .passes import PassesSettings
+
+
+@dataclass(frozen=True)
+class Preset:
+    name: str
+    description: str
+    passes: PassesSettings = field(default_factory=PassesSettings)
+    composite: CompositeSettings = field(default_factory=CompositeSettings)
+    subapertures: int = 1  # 1 = Eq. 1; k > 1 = the middle setting with k x k parts
+
+
+PRESETS = {
+    "draft": Preset("draft", "1 px plane tolerance, large blurs at reduced resolution",
+                    PassesSettings(tolerance_px=1.0), CompositeSettings(reduce_above=8.0)),
+    "default": Preset("default", "0.5 px plane tolerance, exact kernels (FFT + crop)",
+                      PassesSettings(tolerance_px=0.5), CompositeSettings()),
+    "best": Preset("best", "0.25 px plane tolerance, middle setting with 2x2 sub-apertures",
+                   PassesSettings(tolerance_px=0.25), CompositeSettings(), subapertures=2),
+}
+
+
+def get_preset(name: str) -> Preset:
+    try:
+        return PRESETS[name]
+    except KeyError:
+        raise ValueError(f"unknown preset {name!r}; choose from {', '.join(PRESETS)}") from None

@@ -1,0 +1,167 @@
+"""Refocusing a rendered picture: read colour + depth, choose focus and aperture, render.
+
+This is what ``mpib refocus`` and the Blender add-on run. Inputs are EXR files: a
+Blender multilayer file (``ViewLayer.Combined.*`` and ``ViewLayer.Depth.Z``), one of
+this project's renders (``AllInFocus.*`` and ``Depth.Z``, with the camera in its
+``mpib`` header attribute), or colour and depth as two files.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .composite import composite, render_subapertures
+from .exr import ExrError, find_pass, read_exr, rgba_from
+from .passes import DEFAULT_FAR_LIMIT, PassError, depth_to_disparity, layers_from_passes
+from .presets import get_preset
+
+
+@dataclass
+class Passes:
+    """Colour (``(H, W, 3)`` linear) and depth (``(H, W)`` scene units) with their origin."""
+
+    colour: np.ndarray
+    depth: np.ndarray
+    colour_source: str
+    depth_source: str
+    camera: dict = field(default_factory=dict)  # from an mpib render's header, if any
+
+
+def _colour_prefix(img, all_in_focus: bool = True) -> str:
+    """Channel prefix of the colour: ``AllInFocus.`` in an mpib render (its own R, G, B
+    are already defocused) when ``all_in_focus``, else plain R, G, B, else Blender's
+    ``<layer>.Combined.``."""
+    ch = img.channels
+    if all_in_focus and "AllInFocus.R" in ch:
+        return "AllInFocus."
+    if "R" in ch:
+        return ""
+    combined = sorted({n[:-1] for n in ch if n.endswith("Combined.R")})
+    if len(combined) == 1:
+        return combined[0]
+    raise ExrError(f"no colour channels (R, G, B, AllInFocus.* or *.Combined.*) in "
+                   f"'{img.path}'; channels: {', '.join(sorted(ch))}")
+
+
+def read_colour(path, all_in_focus: bool = True) -> np.ndarray:
+    """``(H, W, 4)`` colour of an EXR (see :func:`_colour_prefix` for which channels)."""
+    img = read_exr(path)
+    return rgba_from(img, _colour_prefix(img, all_in_focus))
+
+
+def _depth_channel(img, path) -> np.ndarray:
+    try:
+        return img.channels[find_pass(img, "Depth")].astype(np.float64)
+    except ExrError:
+        pass
+    singles = [n for n in ("Y", "R") if n in img.channels]
+    if len(img.channels) == 1 or singles:
+        name = singles[0] if singles else next(iter(img.channels))
+        return img.channels[name].astype(np.float64)
+    raise PassError(f"no Depth pass in '{path}' (enable the Z / Depth pass in Blender's View "
+                    f"Layer properties); channels: {', '.join(sorted(img.channels))}")
+
+
+def load_passes(path, depth_path=None) -> Passes:
+    """Read colour and depth. Raises :class:`PassError`/:class:`ExrError` naming the file
+    for a missing depth pass or mismatched sizes."""
+    img = read_exr(path)
+    prefix = _colour_prefix(img)
+    colour = rgba_from(img, prefix)[..., :3]
+    camera = {}
+    if "mpib" in img.header:
+        try:
+            camera = json.loads(img.header["mpib"]).get("camera", {})
+        except (TypeError, ValueError):
+            camera = {}
+    if depth_path is None:
+        try:
+            depth = img.channels[find_pass(img, "Depth")].astype(np.float64)
+        except ExrError:
+            raise PassError(f"no Depth pass in '{path}': enable the Z (Depth) pass in Blender's "
+                            f"View Layer properties, or give the depth as a separate file; "
+                            f"channels: {', '.join(sorted(img.channels))}") from None
+        dsrc = str(path)
+    else:
+        depth = _depth_channel(read_exr(depth_path), depth_path)
+        dsrc = str(depth_path)
+    if depth.shape != colour.shape[:2]:
+        raise PassError(f"sizes differ: colour in '{path}' is {colour.shape[1]}x{colour.shape[0]}, "
+                        f"depth in '{dsrc}' is {depth.shape[1]}x{depth.shape[0]}")
+    return Passes(colour.astype(np.float32), depth, f"{path}:{prefix or 'RGB'}", dsrc, camera)
+
+
+def blur_parameter_from_lens(fstop: float, focal_mm: float, width_px: int,
+                             sensor_mm: float = 36.0, scene_unit_m: float = 1.0) -> float:
+    """``A = R f_px`` with ``R = f / (2 N)`` (scene units) and ``f_px = f / sensor * W``
+    (sensor fit horizontal), as Blender's thin lens."""
+    if not (fstop > 0) or math.isinf(fstop):
+        raise PassError(f"the f-stop must be finite and > 0, got {fstop} (no aperture, no defocus)")
+    if not (focal_mm > 0 and sensor_mm > 0):
+        raise PassError("focal length and sensor width must be > 0")
+    R = focal_mm * 1e-3 / scene_unit_m / (2.0 * fstop)
+    return R * focal_mm / sensor_mm * width_px
+
+
+@dataclass
+class RefocusResult:
+    image: np.ndarray  # (H, W, 4): normalised colour + coverage
+    info: dict
+
+
+def refocus(passes: Passes, blur_parameter: float, focus_disparity: float,
+            preset: str = "default", far_limit: float = DEFAULT_FAR_LIMIT) -> RefocusResult:
+    """Build the MPI from the passes and render it with the preset's settings."""
+    if not (blur_parameter > 0) or not math.isfinite(blur_parameter):
+        raise PassError(f"the blur parameter must be finite and > 0 (a zero aperture has no "
+                        f"defocus), got {blur_parameter}")
+    if not (focus_disparity >= 0) or not math.isfinite(focus_disparity):
+        raise PassError(f"the focus disparity must be finite and >= 0, got {focus_disparity}")
+    p = get_preset(preset)
+    t0 = time.perf_counter()
+    D = depth_to_disparity(passes.depth, far_limit, source=passes.depth_source)
+    mpi, info = layers_from_passes(passes.colour, D, blur_parameter, p.passes)
+    if p.subapertures > 1:
+        img = render_subapertures(mpi, blur_parameter, focus_disparity, p.subapertures, p.composite)
+    else:
+        img = composite(mpi, blur_parameter, focus_disparity, p.composite)
+    seconds = time.perf_counter() - t0
+    radius = blur_parameter * max(abs(float(D.max()) - focus_disparity),
+                                  abs(float(D.min()) - focus_disparity))
+    return RefocusResult(img, {
+        "preset": preset, "planes": info.planes, "largest_radius_px": radius,
+        "fill_fraction": info.fill_fraction, "edge_fraction": info.edge_fraction,
+        "blur_parameter": blur_parameter, "focus_disparity": focus_disparity,
+        "seconds": seconds, "layers_seconds": info.seconds,
+        "colour": passes.colour_source, "depth": passes.depth_source})
+
+
+def focus_from_pixel(passes: Passes, x: int, y: int, far_limit: float = DEFAULT_FAR_LIMIT) -> float:
+    """Disparity to focus on pixel ``(x, y)``: the median over its 3x3 neighbourhood."""
+    H, W = passes.depth.shape
+    if not (0 <= x < W and 0 <= y < H):
+        raise PassError(f"focus pixel ({x}, {y}) is outside the {W}x{H} image")
+    D = depth_to_disparity(passes.depth, far_limit, source=passes.depth_source)
+    return float(np.median(D[max(0, y - 1):y + 2, max(0, x - 1):x + 2]))
+
+
+def write_result(path, result: RefocusResult, preview: bool = True) -> list[Path]:
+    """EXR (premultiplied RGBA, linear; the settings in the ``mpib`` attribute) and PNG."""
+    from .exr import channels_from_rgba, write_exr
+    from .preview import write_png
+
+    path = Path(path)
+    img = result.image.copy()
+    img[..., :3] *= img[..., 3:4]
+    write_exr(path, channels_from_rgba(img), attributes={"mpib": json.dumps(result.info, default=float)})
+    written = [path]
+    if preview:
+        write_png(path.with_suffix(".png"), result.image[..., :3])
+        written.append(path.with_suffix(".png"))
+    return written
