@@ -90,17 +90,22 @@ class MPI:
             mpi.add(float(d), layer, 0, 0)
         return mpi
 
-    def add(self, disparity: float, rgba: np.ndarray, y0: int, x0: int) -> None:
+    def add(self, disparity: float, rgba: np.ndarray, y0: int, x0: int,
+            box: tuple[int, int, int, int] | None = None) -> None:
         """Add premultiplied content at canvas position ``(y0, x0)``, cropped to where
-        alpha or colour is non-zero; nothing is stored for empty content."""
+        alpha or colour is non-zero (or to ``box`` = (r0, r1, c0, c1) within ``rgba``
+        when the caller knows it); nothing is stored for empty content."""
         if not np.isfinite(disparity) or disparity < 0:
             raise ValueError(f"layer disparity must be finite and >= 0, got {disparity}")
-        nz = (rgba != 0).any(axis=2)
-        if not nz.any():
-            return
-        rows = np.flatnonzero(nz.any(axis=1))
-        cols = np.flatnonzero(nz.any(axis=0))
-        r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+        if box is None:
+            nz = (rgba != 0).any(axis=2)
+            if not nz.any():
+                return
+            rows = np.flatnonzero(nz.any(axis=1))
+            cols = np.flatnonzero(nz.any(axis=0))
+            r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+        else:
+            r0, r1, c0, c1 = box
         crop = np.array(rgba[r0:r1, c0:c1], dtype=np.float32, order="C", copy=True)
         self.layers.append(Layer(float(disparity), crop, y0 + int(r0), x0 + int(c0)))
         self.layers.sort(key=lambda l: l.disparity)
@@ -285,10 +290,13 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
     """
     planes = np.asarray(planes, np.float64)
     hc, wc = height + 2 * margin, width + 2 * margin
+    # For every sheet and each of its two shares: the canvas pixels with alpha > 0,
+    # sorted by plane, so that each plane touches only its own pixels.
     shares = []
     for sh in sheets:
         alpha = np.asarray(sh.alpha, np.float64)
         d = np.asarray(sh.disparity, np.float64)
+        colour = np.asarray(sh.colour, np.float64).reshape(-1, 3)
         if split == "nearest":
             parts = [(np.abs(d[..., None] - planes).argmin(axis=-1), alpha)]
         elif split == "linear":
@@ -297,29 +305,35 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
         else:
             raise ValueError(f"split must be 'linear' or 'nearest', got {split!r}")
         y0, x0 = sh.origin
-        box = (y0, y0 + alpha.shape[0], x0, x0 + alpha.shape[1])
-        shares.append((box, np.asarray(sh.colour, np.float64), parts))
+        h, w = alpha.shape
+        rows, cols = np.divmod(np.arange(h * w), w)
+        canvas_index = (rows + y0) * wc + (cols + x0)
+        for index, a in parts:
+            a = a.ravel()
+            keep = np.flatnonzero(a > 0)
+            order = keep[np.argsort(index.ravel()[keep], kind="stable")]
+            plane_of = index.ravel()[order]
+            bounds = np.searchsorted(plane_of, np.arange(len(planes) + 1))
+            shares.append((canvas_index[order], a[order], colour[order], bounds))
 
     mpi = MPI(height, width, margin)
-    layer = np.zeros((hc, wc, 4), np.float32)
+    layer = np.zeros((hc * wc, 4), np.float32)
     for p, d_p in enumerate(planes):
-        used = False
-        for (cy0, cy1, cx0, cx1), colour, parts in shares:
-            for index, a in parts:
-                m = (index == p) & (a > 0)
-                if not m.any():
-                    continue
-                if not used:
-                    layer[:] = 0.0
-                    used = True
-                piece = np.zeros(colour.shape[:2] + (4,), np.float64)
-                piece[..., :3][m] = colour[m] * a[m, None]
-                piece[..., 3][m] = a[m]
-                dst = layer[cy0:cy1, cx0:cx1]
-                dst *= (1.0 - piece[..., 3:4]).astype(np.float32)
-                dst += piece.astype(np.float32)
-        if used:
-            mpi.add(float(d_p), layer, 0, 0)
+        touched = []
+        for where, a, colour, bounds in shares:  # sheets far to near: nearer goes "over"
+            s0, s1 = bounds[p], bounds[p + 1]
+            if s0 == s1:
+                continue
+            px, ap = where[s0:s1], a[s0:s1, None]
+            premult = np.concatenate([colour[s0:s1] * ap, ap], axis=1)
+            layer[px] = layer[px] * (1.0 - ap).astype(np.float32) + premult.astype(np.float32)
+            touched.append(px)
+        if touched:
+            px = np.concatenate(touched)
+            r, c = np.divmod(px, wc)
+            box = (int(r.min()), int(r.max()) + 1, int(c.min()), int(c.max()) + 1)
+            mpi.add(float(d_p), layer.reshape(hc, wc, 4), 0, 0, box=box)
+            layer[px] = 0.0  # clear only what this plane wrote
     return mpi
 
 

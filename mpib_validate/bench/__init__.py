@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-SUITES = ("tracer", "compositor")
+SUITES = ("tracer", "compositor", "refocus")
 
 
 def run_bench(out: Path, suite: str = "all", quick: bool = True) -> dict:
@@ -14,6 +14,8 @@ def run_bench(out: Path, suite: str = "all", quick: bool = True) -> dict:
             from .tracer import run
         elif name == "compositor":
             from .compositor import run
+        elif name == "refocus":
+            from .refocus import run
         else:
             raise ValueError(f"unknown benchmark suite {name!r}; choose from {SUITES} or all")
         results[name] = run(Path(out), quick=quick)

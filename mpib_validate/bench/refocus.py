@@ -1,0 +1,216 @@
+"""Benchmark of refocusing from colour + depth, against the ray tracer.
+
+Inputs are what a renderer gives: the tracer's all-in-focus image and its depth pass
+(first surface with alpha >= 0.5 at the pixel centre, as Cycles writes it). Methods:
+the MPI path with the hidden-background fill (adaptive planes, and the paper's 32
+uniform planes), without the fill (visible-only layers), each quality preset, the
+classical baselines (RVR, SteReFo, scatter, gather), and exact layers taken from the
+cards for reference. A second part times ``mpib refocus`` end to end at 1920x1080
+(EXR read and write included) in a subprocess, with its peak memory.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..atomic import write_text
+from .machine import machine_info
+
+
+def _methods(scene, res):
+    from .. import baselines
+    from .. import composite as C
+    from .. import mpi as M
+    from ..passes import PassesSettings, depth_to_disparity, layers_from_passes
+    from ..presets import PRESETS
+
+    cam = scene.camera
+    A, df = cam.blur_parameter, cam.focus_disparity
+    aif = res.all_in_focus[..., :3]
+    D = depth_to_disparity(res.depth)
+
+    def passes(settings, k=1, comp=C.CompositeSettings()):
+        def run():
+            mpi, _ = layers_from_passes(aif, D, A, settings)
+            if k > 1:
+                return C.render_subapertures(mpi, A, df, k, comp)
+            return C.composite(mpi, A, df, comp)
+        return run
+
+    methods = {
+        "mpi-fill-adaptive": passes(PassesSettings()),
+        "mpi-fill-uniform32": passes(PassesSettings(planes="uniform")),
+        "mpi-no-fill": passes(PassesSettings(fill=False)),
+        "mpi-fill-no-unmix": passes(PassesSettings(unmix_edges=False)),
+    }
+    for name, p in PRESETS.items():
+        methods[f"preset-{name}"] = passes(p.passes, p.subapertures, p.composite)
+    methods.update({
+        "rvr": lambda: baselines.rvr(aif, D, A, df),
+        "sterefo": lambda: baselines.sterefo(aif, D, A, df),
+        "scatter": lambda: baselines.scatter(aif, D, A, df),
+        "gather": lambda: baselines.gather(aif, D, A, df),
+        "exact-layers (reference)": lambda: C.composite(M.layers_from_cards(scene), A, df),
+    })
+    return methods
+
+
+def _scene_rows(scene, label, family, ref_spp):
+    from .. import samples, trace
+    from ..evaluate import card_scene_mask, score
+
+    res = trace.render(scene, samples.stratified(ref_spp, seed=11), notices=False)
+    mask = card_scene_mask(scene)
+    rows = []
+    for name, fn in _methods(scene, res).items():
+        fn()  # warm-up (kernel caches)
+        t0 = time.perf_counter()
+        out = fn()
+        seconds = time.perf_counter() - t0
+        rows.append({"scene": label, "family": family, "method": name, "seconds": seconds,
+                     **score(res.bokeh, out, mask)})
+    return rows
+
+
+def _hd_worker(cfg) -> dict:
+    """Time `mpib refocus` at 1920x1080 on an EXR written beforehand (in-process call of
+    the same functions the command runs, EXR read and write included)."""
+    from ..refocus import load_passes, refocus, write_result
+
+    t0 = time.perf_counter()
+    passes = load_passes(cfg["input"])
+    res = refocus(passes, cfg["A"], cfg["d_f"], cfg["preset"])
+    write_result(cfg["output"], res)
+    seconds = time.perf_counter() - t0
+    return {"seconds": seconds, "planes": res.info["planes"],
+            "largest_radius_px": res.info["largest_radius_px"],
+            "fill_fraction": res.info["fill_fraction"],
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}
+
+
+def _hd_input(path: Path) -> dict:
+    from .. import samples, trace
+    from ..render_io import write_render
+    from .compositor import hd_scene
+
+    scene = hd_scene()
+    maps_only = trace.render(scene, samples.pinhole(2), notices=False)  # colour + depth only
+    maps_only.bokeh = maps_only.all_in_focus
+    write_render(path, maps_only, scene, preview=False)
+    return {"A": scene.camera.blur_parameter, "d_f": scene.camera.focus_disparity}
+
+
+def run(out: Path, quick: bool = True) -> dict:
+    from ..generate import FAMILIES, GeneratorSettings, generate
+    from ..presets import PRESETS
+
+    out.mkdir(parents=True, exist_ok=True)
+    size = 192 if quick else 512
+    seeds = range(2) if quick else range(6)
+    ref_spp = 2048 if quick else 8192
+    rows = []
+    for family in FAMILIES:
+        for seed in seeds:
+            scene = generate(seed, family, settings=GeneratorSettings(width=size, height=size))
+            print(f"bench refocus: {family}-{seed} ({size}x{size}) ...", flush=True)
+            rows += _scene_rows(scene, f"{family}-{seed}", family, ref_spp)
+    print("bench refocus: mpib refocus at 1920x1080 ...", flush=True)
+    hd = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        inp = Path(tmp) / "hd.exr"
+        cam = _hd_input(inp)
+        for preset in PRESETS:
+            cfg = {**cam, "input": str(inp), "output": str(Path(tmp) / f"{preset}.exr"),
+                   "preset": preset}
+            r = subprocess.run([sys.executable, "-m", "mpib_validate.bench.refocus", "--worker",
+                                json.dumps(cfg)], capture_output=True, text=True)
+            hd[preset] = (json.loads(r.stdout.strip().splitlines()[-1]) if r.returncode == 0
+                          else {"error": (r.stderr.strip().splitlines() or ["failed"])[-1]})
+    result = {"suite": "refocus", "quick": quick, "size": size, "reference_spp": ref_spp,
+              "machine": machine_info(), "rows": rows, "hd": hd}
+    result["summary"] = _summarise(result)
+    write_text(out / "refocus.json", json.dumps(result, indent=2, default=float) + "\n")
+    write_text(out / "refocus.md", _markdown(result))
+    for line in result["summary"]["headlines"]:
+        print(line)
+    print(f"wrote {out / 'refocus.md'}")
+    return result
+
+
+def _table(rows, family):
+    names = []
+    for r in rows:
+        if r["family"] == family and r["method"] not in names:
+            names.append(r["method"])
+    out = []
+    for n in names:
+        rs = [r for r in rows if r["family"] == family and r["method"] == n]
+        out.append({"method": n, **{k: float(np.mean([r[k] for r in rs])) for k in (
+            "seconds", "psnr", "psnr_ob", "ssim", "ssim_ob", "flip")}})
+    return out
+
+
+def _summarise(result):
+    heads, tables = [], {}
+    for family in ("constant", "varying"):
+        t = _table(result["rows"], family)
+        tables[family] = t
+        g = {r["method"]: r for r in t}
+        best_base = max(("rvr", "sterefo", "scatter", "gather"), key=lambda n: g[n]["psnr_ob"])
+        heads.append(
+            f"{family}: from colour + depth, the MPI with the fill reaches PSNR_ob "
+            f"{g['mpi-fill-adaptive']['psnr_ob']:.1f} dB against {g['mpi-no-fill']['psnr_ob']:.1f} dB "
+            f"without it ({g['mpi-fill-adaptive']['psnr_ob'] - g['mpi-no-fill']['psnr_ob']:+.1f} dB) and "
+            f"{g[best_base]['psnr_ob']:.1f} dB for the best classical baseline ({best_base}); exact "
+            f"layers reach {g['exact-layers (reference)']['psnr_ob']:.1f} dB.")
+    for preset, v in result["hd"].items():
+        if "seconds" in v:
+            heads.append(f"mpib refocus --preset {preset} at 1920x1080 (EXR in and out): "
+                         f"{v['seconds']:.2f} s, peak {v['peak_rss_mb']:.0f} MB, {v['planes']} planes.")
+    return {"headlines": heads, "tables": tables}
+
+
+def _fmt(v, nd=2):
+    return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{nd}f}"
+
+
+def _markdown(result) -> str:
+    m = result["machine"]
+    lines = ["# Refocusing from colour + depth", "",
+             f"Machine: {m.get('processor')}, {m.get('affinity_cores', m.get('cpu_count'))} cores; "
+             f"Python {m['python']}. {'Quick' if result['quick'] else 'Full'} mode: "
+             f"{result['size']}x{result['size']} scenes; reference = ray tracer at "
+             f"{result['reference_spp']} samples; inputs = its all-in-focus image and depth pass.", ""]
+    lines += [f"- {h}" for h in result["summary"]["headlines"]] + [""]
+    for family, t in result["summary"]["tables"].items():
+        lines += [f"## {family} disparity", "",
+                  "| method | time (s) | PSNR | PSNR_ob | SSIM | SSIM_ob | FLIP |",
+                  "|---|---|---|---|---|---|---|"]
+        for r in t:
+            lines.append(f"| {r['method']} | {_fmt(r['seconds'], 3)} | {_fmt(r['psnr'])} | "
+                         f"{_fmt(r['psnr_ob'])} | {_fmt(r['ssim'], 4)} | {_fmt(r['ssim_ob'], 4)} | "
+                         f"{_fmt(r['flip'], 4)} |")
+        lines.append("")
+    lines += ["## mpib refocus at 1920x1080", "", "| preset | time (s) | peak RSS (MB) | planes |",
+              "|---|---|---|---|"]
+    for k, v in result["hd"].items():
+        lines.append(f"| {k} | {_fmt(v.get('seconds'))} | {_fmt(v.get('peak_rss_mb'), 0)} | "
+                     f"{v.get('planes', v.get('error', '-'))} |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    import argparse
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--worker", required=True)
+    print(json.dumps(_hd_worker(json.loads(ap.parse_args().worker))))
