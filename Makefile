@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test test-all bench clean
+.PHONY: setup demo test test-all bench addon clean
 
 $(STAMP): pyproject.toml constraints.txt scripts/setup.sh
 	bash scripts/setup.sh $(PY) $(VENV)
@@ -25,5 +25,8 @@ test-all: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/mpib bench --out out/bench
 
+addon: $(STAMP)
+	$(BIN)/python scripts/build_addon.py --out dist
+
 clean:
-	rm -rf $(VENV) out
+	rm -rf $(VENV) out dist blender_addon/wheels

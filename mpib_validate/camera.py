@@ -141,3 +141,32 @@ class Camera:
             "focus_disparity": float(self.focus_disparity),
             "focal_length_px": float(self.focal_length_px),
         }
+
+
+def blender_camera(lens_mm: float, sensor_width_mm: float, sensor_height_mm: float,
+                   sensor_fit: str, width: int, height: int, fstop: float,
+                   focus_distance: float, unit_scale: float = 1.0) -> Camera:
+    """The :class:`Camera` that a Blender perspective camera renders with.
+
+    Blender maps the sensor to the image by ``sensor_fit``: ``HORIZONTAL`` uses the
+    sensor width across the image width, ``VERTICAL`` the sensor height across the
+    image height, and ``AUTO`` the sensor *width* across the larger image side. Then
+    ``f_px = lens / sensor * pixels``, the aperture radius is ``R = lens / (2 N)``
+    converted to scene units (``unit_scale`` metres per unit), ``A = R f_px`` and
+    ``d_f = 1 / focus_distance`` (scene units). Square pixels are assumed.
+    """
+    if not (fstop > 0) or math.isinf(fstop):
+        raise ValueError(f"f-stop must be finite and > 0, got {fstop}")
+    if not (focus_distance > 0):
+        raise ValueError(f"focus distance must be > 0, got {focus_distance}")
+    fit = sensor_fit.upper()
+    if fit == "VERTICAL":
+        f_px = lens_mm / sensor_height_mm * height
+    elif fit == "HORIZONTAL":
+        f_px = lens_mm / sensor_width_mm * width
+    elif fit == "AUTO":
+        f_px = lens_mm / sensor_width_mm * max(width, height)
+    else:
+        raise ValueError(f"unknown sensor fit {sensor_fit!r}")
+    R = lens_mm * 1e-3 / unit_scale / (2.0 * fstop)
+    return Camera(width, height, R * f_px, 1.0 / focus_distance, f_px)

@@ -185,3 +185,25 @@ def test_duplicate_card_names(tmp_path):
     (root / "scene.json").write_text(json.dumps(doc))
     with pytest.raises(SceneError, match="duplicate card name"):
         load_scene(root)
+
+
+def test_blender_camera_sensor_fits():
+    from mpib_validate.camera import blender_camera
+
+    # 50 mm, f/2, 36x24 sensor, 640x480: f_px = 50/36*640, R = 0.05/4 m
+    c = blender_camera(50, 36, 24, "HORIZONTAL", 640, 480, 2.0, 4.0)
+    assert c.blur_parameter == pytest.approx(0.0125 * 50 / 36 * 640)
+    assert c.focus_disparity == pytest.approx(0.25)
+    # AUTO on a portrait image maps the sensor width to the height (the larger side)
+    p = blender_camera(50, 36, 24, "AUTO", 480, 640, 2.0, 4.0)
+    assert p.focal_length_px == pytest.approx(50 / 36 * 640)
+    v = blender_camera(50, 36, 24, "VERTICAL", 640, 480, 2.0, 4.0)
+    assert v.focal_length_px == pytest.approx(50 / 24 * 480)
+    # the Cycles settings of a camera invert this conversion
+    cam = Camera(320, 240, 12.0, 0.3)
+    cy = cam.cycles_settings()
+    back = blender_camera(cy["lens_mm"], cy["sensor_width_mm"], 24, "HORIZONTAL", 320, 240,
+                          cy["fstop"], cy["focus_distance"])
+    assert back.blur_parameter == pytest.approx(12.0) and back.focus_disparity == pytest.approx(0.3)
+    with pytest.raises(ValueError, match="f-stop"):
+        blender_camera(50, 36, 24, "AUTO", 10, 10, float("inf"), 1.0)

@@ -1,0 +1,49 @@
+"""Settings of the add-on, stored on the scene (``scene.mpib``)."""
+
+import bpy
+from bpy.props import (BoolProperty, EnumProperty, FloatProperty, IntVectorProperty,
+                       PointerProperty, StringProperty)
+
+PRESET_ITEMS = (
+    ("draft", "Draft", "1 px plane tolerance, large blurs at reduced resolution"),
+    ("default", "Default", "0.5 px plane tolerance, exact kernels"),
+    ("best", "Best", "0.25 px plane tolerance, 2x2 sub-apertures"),
+)
+
+
+class MPIB_Settings(bpy.types.PropertyGroup):
+    use_camera_focus: BoolProperty(
+        name="Camera Focus", default=True,
+        description="Focus where the scene camera focuses (distance or focus object)")
+    focus_mode: EnumProperty(
+        name="Focus", default="DISTANCE",
+        items=(("DISTANCE", "Distance", "Focus at a distance from the camera"),
+               ("PIXEL", "Pixel", "Focus on what a pixel of the image shows")))
+    focus_distance: FloatProperty(name="Focus Distance", default=10.0, min=1e-4,
+                                  subtype="DISTANCE", unit="LENGTH")
+    focus_pixel: IntVectorProperty(name="Focus Pixel", size=2, default=(0, 0), min=0,
+                                   description="Pixel (x, y from the top left) to focus on")
+    use_camera_fstop: BoolProperty(name="Camera F-Stop", default=True,
+                                   description="Use the scene camera's f-stop")
+    fstop: FloatProperty(name="F-Stop", default=2.8, min=0.01, soft_max=64.0,
+                         description="Aperture f-number (smaller = more blur)")
+    preset: EnumProperty(name="Quality", items=PRESET_ITEMS, default="default")
+    save_exr: BoolProperty(name="Save EXR", default=False,
+                           description="Also save the result as EXR beside the render output")
+    refocus_animation: BoolProperty(
+        name="Refocus Animation", default=False,
+        description="Refocus every frame of an animation render as it is written "
+                    "(needs multilayer EXR output with the Depth pass)")
+    last_passes: StringProperty(name="Last Passes", subtype="FILE_PATH",
+                                description="EXR with the passes of the last render")
+    last_message: StringProperty(name="Status", description="What the last run reported")
+
+
+def register():
+    bpy.utils.register_class(MPIB_Settings)
+    bpy.types.Scene.mpib = PointerProperty(type=MPIB_Settings)
+
+
+def unregister():
+    del bpy.types.Scene.mpib
+    bpy.utils.unregister_class(MPIB_Settings)

@@ -1,0 +1,69 @@
+"""Sidebar panels in the Image Editor and the Compositor (tab "MPIB")."""
+
+import bpy
+
+
+def draw_settings(layout, context):
+    s = context.scene.mpib
+    col = layout.column(align=True)
+    col.operator("mpib.refocus_render", icon="RENDER_RESULT")
+    col.operator("mpib.refocus_file", icon="FILE_IMAGE")
+    box = layout.box()
+    box.label(text="Focus")
+    box.prop(s, "use_camera_focus")
+    sub = box.column()
+    sub.enabled = not s.use_camera_focus
+    sub.prop(s, "focus_mode", expand=True)
+    if s.focus_mode == "DISTANCE":
+        sub.prop(s, "focus_distance")
+    else:
+        sub.prop(s, "focus_pixel")
+        sub.operator("mpib.pick_focus", icon="EYEDROPPER")
+    box = layout.box()
+    box.label(text="Aperture")
+    box.prop(s, "use_camera_fstop")
+    sub = box.column()
+    sub.enabled = not s.use_camera_fstop
+    sub.prop(s, "fstop")
+    layout.prop(s, "preset")
+    layout.prop(s, "save_exr")
+    layout.prop(s, "refocus_animation")
+    if s.last_message:
+        layout.label(text=s.last_message, icon="ERROR" if s.last_message.startswith("error") else "INFO")
+
+
+class MPIB_PT_image(bpy.types.Panel):
+    bl_label = "MPIB Refocus"
+    bl_space_type = "IMAGE_EDITOR"
+    bl_region_type = "UI"
+    bl_category = "MPIB"
+
+    def draw(self, context):
+        draw_settings(self.layout, context)
+
+
+class MPIB_PT_compositor(bpy.types.Panel):
+    bl_label = "MPIB Refocus"
+    bl_space_type = "NODE_EDITOR"
+    bl_region_type = "UI"
+    bl_category = "MPIB"
+
+    @classmethod
+    def poll(cls, context):
+        return getattr(context.space_data, "tree_type", "") == "CompositorNodeTree"
+
+    def draw(self, context):
+        draw_settings(self.layout, context)
+
+
+classes = (MPIB_PT_image, MPIB_PT_compositor)
+
+
+def register():
+    for c in classes:
+        bpy.utils.register_class(c)
+
+
+def unregister():
+    for c in reversed(classes):
+        bpy.utils.unregister_class(c)

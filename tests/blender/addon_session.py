@@ -1,0 +1,191 @@
+"""Runs inside a fresh Python with the bpy module (started by tests/test_addon.py).
+
+Installs the built extension zip into a throw-away repository, exercises it on a small
+Cycles scene and on bad inputs, disables it, and prints one JSON line of findings.
+Usage: python addon_session.py ZIP WORKDIR
+"""
+
+import json
+import os
+import sys
+import tempfile
+
+import bpy
+import numpy as np
+
+zip_path, work = sys.argv[1], sys.argv[2]
+out = {}
+
+
+def cycles_scene(dof: bool, spp: int, depth_pass: bool = True, ortho: bool = False, empty=False):
+    # a clean scene without resetting preferences (that would disable the add-on)
+    for coll in (bpy.data.objects, bpy.data.meshes, bpy.data.materials, bpy.data.cameras,
+                 bpy.data.worlds):
+        for item in list(coll):
+            coll.remove(item)
+    sc = bpy.context.scene
+    sc.mpib.last_passes = ""
+    sc.mpib.last_message = ""
+    sc.render.engine = "CYCLES"
+    sc.cycles.device = "CPU"
+    sc.cycles.samples = spp
+    sc.cycles.use_denoising = False
+    sc.cycles.use_adaptive_sampling = False
+    sc.cycles.max_bounces = 0
+    sc.render.resolution_x, sc.render.resolution_y = 64, 48
+    sc.render.resolution_percentage = 100
+    sc.render.filter_size = 0.01
+    sc.view_settings.view_transform = "Standard"
+    sc.view_layers[0].use_pass_z = depth_pass
+    world = bpy.data.worlds.new("black")
+    world.color = (0, 0, 0)
+    sc.world = world
+    cam_data = bpy.data.cameras.new("cam")
+    cam_data.type = "ORTHO" if ortho else "PERSP"
+    cam_data.lens, cam_data.sensor_width, cam_data.sensor_fit = 100.0, 36.0, "HORIZONTAL"
+    cam_data.dof.use_dof = dof
+    cam_data.dof.aperture_fstop = 1.0
+    cam_data.dof.focus_distance = 6.0
+    cam = bpy.data.objects.new("cam", cam_data)
+    sc.collection.objects.link(cam)
+    sc.camera = cam
+    if empty:
+        return sc
+    # emissive checker wall at 6 m (in focus) and an emissive square at 1.5 m in front:
+    # f_px = 100/36*64 = 178 px, R = 0.1 m/(2*1) = 0.05 m, A = 8.9 px per 1/m, so the
+    # square blurs with radius A (1/1.5 - 1/6) = 4.4 px
+    for name, z, size, colour, scale in (("wall", -6.0, 8.0, (0.2, 0.8, 0.3), 6.0),
+                                        ("card", -1.5, 0.25, (1.0, 0.3, 0.1), 0.0)):
+        bpy.ops.mesh.primitive_plane_add(size=size, location=(0.08 if name == "card" else 0, 0, z))
+        obj = bpy.context.active_object
+        obj.name = name
+        mat = bpy.data.materials.new(name)
+        mat.use_nodes = True
+        nt = mat.node_tree
+        for n in list(nt.nodes):
+            nt.nodes.remove(n)
+        em = nt.nodes.new("ShaderNodeEmission")
+        outn = nt.nodes.new("ShaderNodeOutputMaterial")
+        if scale:
+            chk = nt.nodes.new("ShaderNodeTexChecker")
+            chk.inputs["Scale"].default_value = scale
+            chk.inputs["Color1"].default_value = (*colour, 1)
+            chk.inputs["Color2"].default_value = (0.9, 0.9, 0.9, 1)
+            nt.links.new(chk.outputs["Color"], em.inputs["Color"])
+        else:
+            em.inputs["Color"].default_value = (*colour, 1)
+        nt.links.new(em.outputs["Emission"], outn.inputs["Surface"])
+        obj.data.materials.append(mat)
+    return sc
+
+
+out["probe"] = bpy.app.version_string
+
+
+def read_rgb(path):
+    from mpib_validate.exr import read_exr, rgba_from
+    from mpib_validate.refocus import _colour_prefix
+
+    img = read_exr(path)
+    return rgba_from(img, _colour_prefix(img))[..., :3]
+
+
+def render_to(path, sc):
+    sc.render.filepath = path
+    s = sc.render.image_settings
+    if hasattr(s, "media_type"):
+        s.media_type = "MULTI_LAYER_IMAGE"
+    else:
+        s.file_format = "OPEN_EXR_MULTILAYER"
+    s.color_depth = "32"
+    bpy.ops.render.render(write_still=True)
+    return path
+
+
+# -- install ---------------------------------------------------------------------------
+prefs = bpy.context.preferences
+repo_dir = tempfile.mkdtemp(dir=work)
+prefs.extensions.repos.new(name="mpib_test", module="mpib_test", custom_directory=repo_dir,
+                           source="USER")
+res = bpy.ops.extensions.package_install_files(filepath=zip_path, repo="mpib_test",
+                                               enable_on_install=True)
+out["install"] = sorted(res)
+out["addon_enabled"] = [a.module for a in prefs.addons if a.module.endswith("mpib_refocus")]
+out["operators"] = [n for n in ("refocus_render", "refocus_file", "pick_focus") if hasattr(bpy.ops.mpib, n)]
+out["panels"] = [c for c in ("MPIB_PT_image", "MPIB_PT_compositor") if hasattr(bpy.types, c)]
+import mpib_validate  # noqa: E402  (the add-on's bundled copy comes first on sys.path)
+
+out["mpib_validate_from"] = mpib_validate.__file__
+out["bundled_dir"] = bpy.utils.user_resource("EXTENSIONS", path=".local")
+
+# -- refocus a real Cycles render --------------------------------------------------------
+sc = cycles_scene(dof=False, spp=16)
+bpy.ops.render.render(write_still=False)  # the add-on's handler keeps the passes
+out["kept_passes"] = bool(sc.mpib.last_passes and os.path.exists(sc.mpib.last_passes))
+sharp = read_rgb(sc.mpib.last_passes)
+r = bpy.ops.mpib.refocus_render()
+out["refocus_render"] = sorted(r)
+out["message"] = sc.mpib.last_message
+img = bpy.data.images.get("Render Result (refocused)")
+out["image"] = [list(img.size), img.is_float] if img else None
+refocused = np.array(img.pixels[:], np.float32).reshape(48, 64, 4)[::-1, :, :3]
+sc.camera.data.dof.use_dof = True
+sc.cycles.samples = 256
+dof_path = render_to(os.path.join(work, "dof.exr"), sc)
+ref = read_rgb(dof_path)
+np.save(os.path.join(work, "sharp.npy"), sharp)
+np.save(os.path.join(work, "refocused.npy"), refocused)
+np.save(os.path.join(work, "dof.npy"), ref)
+
+# -- bad inputs ----------------------------------------------------------------------------
+reports = {}
+
+
+def call(op, **kw):
+    """Run an operator; an ERROR report reaches a Python caller as RuntimeError."""
+    try:
+        return sorted(op(**kw))
+    except RuntimeError as exc:
+        return ["RuntimeError: " + str(exc).strip()]
+
+
+calls = {}
+sc = cycles_scene(dof=True, spp=2, depth_pass=False)
+bpy.ops.render.render(write_still=False)
+calls["no_depth_pass"] = call(bpy.ops.mpib.refocus_render)
+reports["no_depth_pass"] = sc.mpib.last_message
+sc = cycles_scene(dof=True, spp=2, empty=True)
+bpy.ops.render.render(write_still=False)
+calls["depth_all_infinite"] = call(bpy.ops.mpib.refocus_render)
+reports["depth_all_infinite"] = sc.mpib.last_message
+from mpib_validate.exr import channels_from_rgba, write_exr  # noqa: E402
+
+nan_path = os.path.join(work, "nan.exr")
+depth = np.full((8, 8), 5.0, np.float32)
+depth[2, 3] = np.nan
+write_exr(nan_path, {**channels_from_rgba(np.ones((8, 8, 4), np.float32)), "Depth.Z": depth})
+sc = cycles_scene(dof=True, spp=2)
+calls["nan"] = call(bpy.ops.mpib.refocus_file, filepath=nan_path)
+reports["nan"] = sc.mpib.last_message
+calls["missing_file"] = call(bpy.ops.mpib.refocus_file, filepath=os.path.join(work, "missing.exr"))
+reports["missing_file"] = sc.mpib.last_message
+sc = cycles_scene(dof=False, spp=2)
+bpy.ops.render.render(write_still=False)
+calls["camera_without_dof"] = call(bpy.ops.mpib.refocus_render)
+reports["camera_without_dof"] = sc.mpib.last_message
+sc = cycles_scene(dof=True, spp=2, ortho=True)
+bpy.ops.render.render(write_still=False)
+calls["orthographic"] = call(bpy.ops.mpib.refocus_render)
+reports["orthographic"] = sc.mpib.last_message
+out["reports"] = reports
+out["calls"] = calls
+
+# -- unregister leaves nothing behind ------------------------------------------------------
+bpy.ops.preferences.addon_disable(module=out["addon_enabled"][0])
+out["after_disable"] = {
+    "types": [c for c in dir(bpy.types) if c.startswith("MPIB")],
+    "scene_property": hasattr(bpy.types.Scene, "mpib"),
+    "handlers": [f.__name__ for f in bpy.app.handlers.render_complete + bpy.app.handlers.render_write
+                 if f.__module__.startswith("bl_ext")],
+}
+print("RESULT " + json.dumps(out))

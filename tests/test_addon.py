@@ -1,0 +1,90 @@
+"""The Blender extension, headless in real Blender (the bpy module, Cycles on the CPU).
+
+The zip is built with Blender's own extension tool, installed into a throw-away
+extension repository of a fresh bpy process (its user resources in a temporary folder),
+and driven through its operators. The Blender session runs in a subprocess so that
+its global state never meets the rest of the test suite.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+pytest.importorskip("bpy")
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    work = tmp_path_factory.mktemp("addon")
+    r = subprocess.run([sys.executable, str(ROOT / "scripts" / "build_addon.py"), "--out",
+                        str(work / "dist")], capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    zips = list((work / "dist").glob("mpib_refocus-*.zip"))
+    assert len(zips) == 1
+    env = dict(os.environ, BLENDER_USER_RESOURCES=str(work / "blender_user"))
+    r = subprocess.run([sys.executable, str(ROOT / "tests" / "blender" / "addon_session.py"),
+                        str(zips[0]), str(work)], capture_output=True, text=True, timeout=900,
+                       env=env, cwd=work)
+    lines = [l for l in r.stdout.splitlines() if l.startswith("RESULT ")]
+    assert r.returncode == 0 and lines, r.stdout[-3000:] + r.stderr[-3000:]
+    return json.loads(lines[-1][7:]), work
+
+
+def test_installs_registers_and_bundles_its_wheel(session):
+    out, work = session
+    assert out["install"] == ["FINISHED"] and out["addon_enabled"]
+    assert out["operators"] == ["refocus_render", "refocus_file", "pick_focus"]
+    assert out["panels"] == ["MPIB_PT_image", "MPIB_PT_compositor"]
+    # the compositor comes from the zip's own wheel, installed into Blender's extension
+    # site-packages, not from the test environment
+    assert out["mpib_validate_from"].startswith(out["bundled_dir"])
+
+
+def test_refocus_of_a_cycles_render_approaches_cycles_depth_of_field(session):
+    """Render sharp passes (depth of field off), refocus them with the camera's f-stop
+    and focus, and compare with Cycles rendering the same camera with depth of field
+    on (256 samples; the foreground blurs by 4.4 px). Measured at 64x48: the refocused
+    image is 38.7 dB from the Cycles DOF render against 23.0 dB for the sharp render (a
+    15.7 dB gain, the DOF render's own sampling noise included); we require 10 dB."""
+    from mpib_validate.metrics import psnr
+
+    out, work = session
+    assert out["kept_passes"] and out["refocus_render"] == ["FINISHED"]
+    assert out["image"] == [[64, 48], True]
+    sharp, refocused, dof = (np.load(work / f"{n}.npy") for n in ("sharp", "refocused", "dof"))
+    gain = psnr(np.clip(dof, 0, 1), np.clip(refocused, 0, 1)) - psnr(np.clip(dof, 0, 1),
+                                                                      np.clip(sharp, 0, 1))
+    assert gain > 10.0, gain
+
+
+@pytest.mark.parametrize("case, text", [
+    ("no_depth_pass", "no Depth pass"),
+    ("depth_all_infinite", "at infinity"),
+    ("nan", "NaN"),
+    ("missing_file", "does not exist"),
+    ("camera_without_dof", "depth of field off"),
+    ("orthographic", "perspective"),
+])
+def test_bad_input_gets_a_report(session, case, text):
+    out, _ = session
+    msg = out["reports"][case]
+    assert text in msg, msg
+    if case == "camera_without_dof":  # advice, and the refocus still runs
+        assert msg.startswith("warning:") and out["calls"][case] == ["FINISHED"]
+    else:  # the operator is cancelled with an ERROR report (a RuntimeError to Python)
+        assert msg.startswith("error:")
+        assert out["calls"][case][0].startswith("RuntimeError: Error:"), out["calls"][case]
+        assert "Traceback" not in out["calls"][case][0]
+
+
+def test_unregister_leaves_nothing_behind(session):
+    out, _ = session
+    assert out["after_disable"] == {"types": [], "scene_property": False, "handlers": []}
