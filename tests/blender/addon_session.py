@@ -123,6 +123,10 @@ sc = cycles_scene(dof=False, spp=16)
 bpy.ops.render.render(write_still=False)  # the add-on's handler keeps the passes
 out["kept_passes"] = bool(sc.mpib.last_passes and os.path.exists(sc.mpib.last_passes))
 sharp = read_rgb(sc.mpib.last_passes)
+from mpib_validate.exr import find_pass, read_exr  # noqa: E402
+
+_passes = read_exr(sc.mpib.last_passes)
+np.save(os.path.join(work, "depth.npy"), _passes.channels[find_pass(_passes, "Depth")])
 r = bpy.ops.mpib.refocus_render()
 out["refocus_render"] = sorted(r)
 out["message"] = sc.mpib.last_message
