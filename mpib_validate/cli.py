@@ -75,17 +75,24 @@ def cmd_render(args) -> int:
     from .scene import load_scene
     from .trace import render
 
-    if args.engine != "trace":
-        raise CliError(f"engine '{args.engine}' is not available yet; use --engine trace")
     scene = _apply_camera_overrides(load_scene(args.scene), args)
     src = Path(args.scene)
     json_path = src / "scene.json" if src.is_dir() else src
     refuse_overwrite(args.output, [json_path] + [json_path.parent / "cards" / f"{c.name}.exr"
                                                  for c in scene.cards])
     refuse_overwrite(Path(args.output).with_suffix(".png"), [json_path])
-    smp = _sample_set(args)
-    result = render(scene, smp, backend=args.backend, lookup=args.lookup, order=args.order,
-                    progress=not args.quiet)
+    if args.engine == "cycles":
+        from .cycles import render_result
+
+        result = render_result(scene, args.spp, seed=args.seed)
+    elif args.engine == "mitsuba":
+        import mitsuba_scenes
+
+        result = mitsuba_scenes.render_result(scene, args.spp, seed=args.seed,
+                                              variant=args.variant)
+    else:
+        result = render(scene, _sample_set(args), backend=args.backend, lookup=args.lookup,
+                        order=args.order, progress=not args.quiet)
     written = write_render(args.output, result, scene, preview=not args.no_preview)
     m = result.meta
     print(f"rendered {scene.camera.width}x{scene.camera.height}, {len(scene.cards)} cards, "
@@ -246,7 +253,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--engine", default="trace", choices=["trace", "mitsuba", "cycles"])
     r.add_argument("--aperture", choices=["sobol", "grid"], default="sobol",
                    help="sobol: scrambled 4-D Sobol (default); grid: the official square grid")
-    r.add_argument("--spp", type=int, default=1024, help="samples per pixel for --aperture sobol")
+    r.add_argument("--spp", type=int, default=1024,
+                   help="samples per pixel (trace with --aperture sobol, cycles, mitsuba)")
+    r.add_argument("--variant", default=None,
+                   help="Mitsuba variant (default: probed: cuda_ad_rgb, llvm_ad_rgb, scalar_rgb)")
     r.add_argument("--grid-side", type=int, default=51,
                    help="grid points per side for --aperture grid (51 = 1,957 samples)")
     r.add_argument("--pixel", choices=["box", "centre"], default="box",

@@ -83,3 +83,17 @@ def test_compare(tmp_path):
     write_exr(tmp_path / "c.exr", channels_from_rgba(a[:10]))
     r = mpib("compare", tmp_path / "a.exr", tmp_path / "c.exr")
     assert r.returncode == 2 and "image sizes differ" in r.stderr and "c.exr" in r.stderr
+
+
+@pytest.mark.parametrize("engine, spp", [("mitsuba", 16), ("cycles", 4)])
+def test_render_with_other_engines(tmp_path, engine, spp):
+    pytest.importorskip({"mitsuba": "mitsuba", "cycles": "bpy"}[engine])
+    r = mpib("generate", "--seed", 2, "--size", "32x24", "--out", tmp_path / "s")
+    assert r.returncode == 0, r.stderr
+    out = tmp_path / f"{engine}.exr"
+    r = mpib("render", tmp_path / "s", "--engine", engine, "--spp", spp, "-o", out, "-q")
+    assert r.returncode == 0, r.stderr
+    img = read_exr(out)
+    assert rgba_from(img).shape == (24, 32, 4) and "Depth.Z" in img.channels
+    meta = json.loads(img.header["mpib"])
+    assert meta["sample_count"] == spp and engine in (meta["engine"] + meta["backend"] + meta["samples"])
