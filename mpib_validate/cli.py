@@ -285,7 +285,7 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Run a benchmark suite and write a report folder "
                                    "(Markdown + JSON).")
     b.add_argument("--out", default="out/bench", help="report folder (default out/bench)")
-    b.add_argument("--suite", choices=["all", "tracer", "compositor", "refocus"], default="all")
+    b.add_argument("--suite", choices=["all", "tracer", "compositor", "refocus", "references", "scaling"], default="all")
     b.add_argument("--full", action="store_true", help="full sizes (slow); default is quick")
     b.set_defaults(func=cmd_bench)
 

@@ -1,22 +1,32 @@
-"""``mpib bench``: speed and error measurements, written to a report folder."""
+"""``mpib bench``: speed and error of every renderer, written to a report folder.
+
+Suites (each writes ``<suite>.md`` and ``<suite>.json``): ``tracer`` (numpy against
+Dr.Jit), ``compositor`` (Eq. 1, the middle setting, the exact renderer, the fast paths,
+and the ray tracer, Mitsuba and Cycles at a sweep of sample counts, on exact layers),
+``refocus`` (from colour + depth: the MPI with and without the fill, the presets, the
+classical baselines, Blender's Defocus node; ``mpib refocus`` at 1920x1080),
+``references`` (Mitsuba and Cycles time and noise against samples per pixel) and
+``scaling``. ``index.md`` gathers the headlines, Pareto plots and boundary crops.
+"""
 
 from __future__ import annotations
 
+import importlib
 from pathlib import Path
 
-SUITES = ("tracer", "compositor", "refocus")
+SUITES = ("tracer", "compositor", "refocus", "references", "scaling")
 
 
 def run_bench(out: Path, suite: str = "all", quick: bool = True) -> dict:
+    out = Path(out)
+    names = SUITES if suite == "all" else (suite,)
     results = {}
-    for name in (SUITES if suite == "all" else (suite,)):
-        if name == "tracer":
-            from .tracer import run
-        elif name == "compositor":
-            from .compositor import run
-        elif name == "refocus":
-            from .refocus import run
-        else:
+    for name in names:
+        if name not in SUITES:
             raise ValueError(f"unknown benchmark suite {name!r}; choose from {SUITES} or all")
-        results[name] = run(Path(out), quick=quick)
+        module = importlib.import_module(f"{__name__}.{name}")
+        results[name] = module.run(out, quick=quick)
+    from .report import write_index
+
+    print(f"wrote {write_index(out, results)}")
     return results

@@ -105,10 +105,52 @@ def _scene_rows(scene, label: str, family: str, ref_spp: int, repeats: int) -> l
         out, seconds = _time(fn, reps)
         rows.append({"scene": label, "family": family, "method": name, "seconds": seconds,
                      "planes": len(mpi.layers), **score(ref, out, mask)})
+    rows += _renderer_rows(scene, label, family, ref, mask)
     plain = next(r for r in rows if r["method"] == "path-plain")
     for r in rows:
         if r["method"].startswith("path-"):
             r["delta_psnr_vs_plain"] = r["psnr"] - plain["psnr"]
+    return rows
+
+
+def _renderer_rows(scene, label, family, ref, mask, spps=(16, 64, 256)) -> list[dict]:
+    """What rendering depth of field directly costs: the ray tracer (its Dr.Jit and numpy
+    backends), Mitsuba and Cycles at a sweep of sample counts, scored like the methods."""
+    import importlib.util
+
+    from .. import samples, trace
+    from ..backend import resolve
+    from ..evaluate import score
+
+    rows = []
+    engines = [("trace-numpy", None)]
+    if resolve("llvm").name == "llvm":
+        engines.insert(0, ("trace-llvm", None))
+    if importlib.util.find_spec("mitsuba") is not None:
+        engines.append(("mitsuba", None))
+    if importlib.util.find_spec("bpy") is not None:
+        engines.append(("cycles", None))
+    for name, _ in engines:
+        for spp in spps:
+            if name == "trace-numpy" and spp > 64:
+                continue  # its time grows linearly; two points show the line
+            if name.startswith("trace"):
+                img, meta = trace.trace(scene, samples.stratified(spp, seed=5),
+                                        backend=name.split("-")[1], notices=False)
+                seconds = meta["seconds"]
+            elif name == "mitsuba":
+                import mitsuba_scenes
+
+                mitsuba_scenes.render(scene, spp, seed=5)  # warm-up (JIT)
+                img, meta = mitsuba_scenes.render(scene, spp, seed=5)
+                seconds = meta["render_seconds"]
+            else:
+                from .. import cycles
+
+                img, _, meta = cycles.render(scene, spp, 5, True, depth=False)
+                seconds = meta["seconds"]
+            rows.append({"scene": label, "family": family, "method": f"{name}-{spp}spp",
+                         "seconds": seconds, "planes": 0, **score(ref, img, mask)})
     return rows
 
 

@@ -1,0 +1,173 @@
+"""The benchmark's front page: Pareto plots, an image grid of boundary crops, headlines.
+
+Everything on the page is computed from the suites' results; nothing is typed in.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..atomic import atomic_path, write_text
+from .machine import machine_info
+
+#: Methods drawn in the Pareto plots, with a legend group each.
+GROUPS = (
+    ("Eq. 1, exact layers", ("eq1-",)),
+    ("middle setting", ("middle-",)),
+    ("exact MPI renderer", ("exact-",)),
+    ("fast paths", ("path-",)),
+    ("from colour + depth (MPI)", ("mpi-", "preset-")),
+    ("classical baselines", ("rvr", "sterefo", "scatter", "gather")),
+    ("Blender Defocus node", ("blender-defocus",)),
+    ("ray tracer", ("trace-",)),
+    ("Mitsuba 3", ("mitsuba-",)),
+    ("Cycles", ("cycles-",)),
+)
+
+
+def _group(method: str) -> str | None:
+    for name, prefixes in GROUPS:
+        if method.startswith(prefixes):
+            return name
+    return None
+
+
+def _mean_rows(rows, family):
+    out = {}
+    for r in rows:
+        if r.get("family") != family or not math.isfinite(r.get("seconds", math.nan)):
+            continue
+        out.setdefault(r["method"], []).append(r)
+    return {m: {k: float(np.mean([r[k] for r in rs])) for k in ("seconds", "psnr", "psnr_ob")}
+            for m, rs in out.items()}
+
+
+def pareto_plot(rows, family: str, path: Path, metric: str = "psnr") -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    means = _mean_rows(rows, family)
+    fig, ax = plt.subplots(figsize=(8.5, 5.5))
+    for name, _ in GROUPS:
+        pts = [(m, v) for m, v in means.items() if _group(m) == name]
+        if not pts:
+            continue
+        ax.scatter([v["seconds"] for _, v in pts], [min(v[metric], 80) for _, v in pts],
+                   label=name, s=28)
+        for m, v in pts:
+            ax.annotate(m, (v["seconds"], min(v[metric], 80)), fontsize=6, alpha=0.8,
+                        xytext=(3, 2), textcoords="offset points")
+    ax.set_xscale("log")
+    ax.set_xlabel("time (s, log scale)")
+    ax.set_ylabel(f"{metric.upper().replace('_OB', '_ob')} against the ray tracer (dB)")
+    ax.set_title(f"Error against time, {family} disparity")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+
+
+def crop_grid(path: Path, size: int = 192, crop: int = 48) -> list[str]:
+    """For one scene per family: crops around the occlusion boundary where Eq. 1 on
+    colour + depth errs most, each method beside the reference. Returns the methods."""
+    from PIL import Image
+
+    from .. import baselines, samples, trace
+    from ..composite import composite
+    from ..evaluate import card_scene_mask
+    from ..generate import FAMILIES, GeneratorSettings, generate
+    from ..mpi import layers_from_cards
+    from ..passes import PassesSettings, depth_to_disparity, layers_from_passes
+    from ..preview import to_uint8
+
+    rows, names = [], None
+    for family in FAMILIES:
+        scene = generate(0, family, settings=GeneratorSettings(width=size, height=size))
+        cam = scene.camera
+        A, df = cam.blur_parameter, cam.focus_disparity
+        res = trace.render(scene, samples.stratified(1024), notices=False)
+        D = depth_to_disparity(res.depth)
+        aif = res.all_in_focus[..., :3]
+        imgs = {"reference (ray tracer)": res.bokeh[..., :3],
+                "MPI, exact layers": composite(layers_from_cards(scene), A, df)[..., :3],
+                "MPI, colour+depth+fill": composite(layers_from_passes(aif, D, A)[0], A, df)[..., :3],
+                "MPI, no fill": composite(layers_from_passes(aif, D, A, PassesSettings(fill=False))[0], A, df)[..., :3],
+                "scatter": baselines.scatter(aif, D, A, df),
+                "all in focus (input)": aif}
+        try:
+            from ..defocus_node import defocus
+
+            imgs["Blender Defocus node"] = defocus(aif, res.depth, cam.cycles_settings(), timing=False)[0]
+        except ImportError:
+            pass
+        names = list(imgs)
+        err = np.abs(imgs["MPI, colour+depth+fill"] - imgs["reference (ray tracer)"]).sum(-1)
+        err[~card_scene_mask(scene)] = 0
+        h = crop // 2
+        err[:h], err[-h:], err[:, :h], err[:, -h:] = 0, 0, 0, 0
+        y, x = np.unravel_index(int(err.argmax()), err.shape)
+        tiles = [to_uint8(im[y - h:y + h, x - h:x + h]) for im in imgs.values()]
+        rows.append(np.concatenate([np.pad(t, ((2, 2), (2, 2), (0, 0)), constant_values=255)
+                                    for t in tiles], axis=1))
+    grid = np.concatenate(rows, axis=0)
+    big = Image.fromarray(grid).resize((grid.shape[1] * 3, grid.shape[0] * 3), Image.NEAREST)
+    with atomic_path(path) as tmp:
+        big.save(tmp, format="PNG")
+    return names
+
+
+def write_index(out: Path, results: dict) -> Path:
+    """``index.md``: machine and versions, headline sentences, plots, links to each suite."""
+    lines = ["# mpib benchmark", ""]
+    m = machine_info()
+    lines += [f"Machine: {m.get('processor')}, {m.get('affinity_cores', m.get('cpu_count'))} cores, "
+              f"{m.get('platform')}; Python {m['python']}; "
+              + ", ".join(f"{k} {m[k]}" for k in ("numpy", "drjit", "OpenEXR", "scipy",
+                                                  "scikit-image", "mitsuba", "bpy") if k in m) + ".",
+              ""]
+    lines += ["## Headlines", ""]
+    for name, res in results.items():
+        for h in res.get("summary", {}).get("headlines", []):
+            lines.append(f"- {h}")
+    lines.append("")
+    rows = []
+    for key in ("compositor", "refocus"):
+        rows += results.get(key, {}).get("rows", [])
+    if rows:
+        try:
+            for family in ("constant", "varying"):
+                for metric in ("psnr", "psnr_ob"):
+                    p = out / f"pareto-{family}-{metric}.png"
+                    pareto_plot(rows, family, p, metric)
+            lines += ["## Error against time", "",
+                      "Each point is one method, averaged over the suite's scenes; higher is better, "
+                      "further left is faster. The methods from colour + depth start from the "
+                      "ray tracer's all-in-focus image and depth pass.", ""]
+            for family in ("constant", "varying"):
+                lines += [f"![{family}](pareto-{family}-psnr.png)",
+                          f"![{family} ob](pareto-{family}-psnr_ob.png)", ""]
+        except ImportError:
+            lines += ["(matplotlib is not installed: no plots)", ""]
+    try:
+        names = crop_grid(out / "crops.png")
+        lines += ["## At occlusion boundaries", "",
+                  "Crops (48x48, x3) where the colour + depth MPI errs most inside the "
+                  "occlusion-boundary mask; rows: constant, varying; columns: "
+                  + ", ".join(names) + ".", "", "![crops](crops.png)", ""]
+    except ImportError:
+        pass
+    if "scaling" in results:
+        lines += ["## Scaling", "", "![scaling](scaling.png)", ""]
+    lines += ["## Suites", ""]
+    for name in results:
+        lines.append(f"- [{name}]({name}.md) (raw results: [{name}.json]({name}.json))")
+    path = out / "index.md"
+    write_text(path, "\n".join(lines) + "\n")
+    return path

@@ -1,0 +1,43 @@
+"""The benchmark's own code paths on a tiny real run (the numbers come from `mpib bench`)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from mpib_validate.bench import compositor, report
+from mpib_validate.generate import GeneratorSettings, generate
+
+
+@pytest.fixture(scope="module")
+def rows():
+    out = []
+    for family in ("constant", "varying"):
+        scene = generate(0, family, settings=GeneratorSettings(width=32, height=32))
+        out += compositor._scene_rows(scene, f"{family}-0", family, ref_spp=64, repeats=1)
+    return out
+
+
+def test_compositor_rows_hold_every_method_and_metric(rows):
+    methods = {r["method"] for r in rows}
+    for m in ("eq1-adaptive", "eq1-uniform32", "middle-k2", "exact-1024spp", "path-plain",
+              "path-fft", "path-crop"):
+        assert m in methods
+    assert any(m.startswith("trace-") for m in methods)
+    for r in rows:
+        if r["method"].startswith("reference"):
+            continue
+        assert r["seconds"] > 0 and not math.isnan(r["psnr"]) and "psnr_ob" in r and "ssim" in r
+    # the fast paths change nothing but rounding
+    for r in rows:
+        if r["method"] in ("path-fft", "path-crop", "path-auto+crop"):
+            assert abs(r["delta_psnr_vs_plain"]) < 1e-3
+
+
+def test_pareto_plot_is_written(rows, tmp_path):
+    pytest.importorskip("matplotlib")
+    for family in ("constant", "varying"):
+        p = tmp_path / f"{family}.png"
+        report.pareto_plot(rows, family, p)
+        assert p.stat().st_size > 10_000 and p.read_bytes()[:4] == b"\x89PNG"
