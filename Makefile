@@ -15,6 +15,7 @@ setup: $(STAMP)
 
 demo: $(STAMP)
 	$(BIN)/mpib demo --out out/demo
+	$(BIN)/mpib bench --out out/bench
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -m "not slow" -q
