@@ -1,6 +1,5 @@
 """Focus and aperture from the scene camera (or the panel's overrides)."""
 
-from mathutils import Vector
 
 
 class CalibrationError(ValueError):

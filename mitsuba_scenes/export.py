@@ -90,11 +90,11 @@ def _card_xml(card, coverage: bool) -> str:
             f'        <emitter type="area">\n{radiance}        </emitter>\n'
             f'        <bsdf type="mask">\n'
             + _bitmap_xml("opacity", f"cards/{card.name}_alpha.exr", " " * 12)
-            + f'            <bsdf type="diffuse">\n'
-              f'                <rgb name="reflectance" value="0"/>\n'
-              f'            </bsdf>\n'
-              f'        </bsdf>\n'
-              f'    </shape>\n')
+            + '            <bsdf type="diffuse">\n'
+              '                <rgb name="reflectance" value="0"/>\n'
+              '            </bsdf>\n'
+              '        </bsdf>\n'
+              '    </shape>\n')
 
 
 def _backstop_xml(scene: Scene) -> str:

@@ -14,8 +14,6 @@ from __future__ import annotations
 import functools
 import importlib.util
 import os
-import subprocess
-import sys
 from dataclasses import dataclass, field
 
 from mpib_validate import backend as _backend
@@ -62,18 +60,8 @@ def mitsuba_installed() -> bool:
 
 
 def _probe(variant: str) -> tuple[bool, str]:
-    try:
-        r = subprocess.run([sys.executable, "-c", _PROBE, variant], env=dict(os.environ),
-                           capture_output=True, text=True, timeout=300)
-    except (OSError, subprocess.TimeoutExpired) as exc:
-        return False, f"probe failed to run: {exc}"
-    if r.returncode == 0 and r.stdout.startswith("ok"):
-        return True, "ok"
-    tail = (r.stdout + r.stderr).strip().splitlines()
-    why = tail[-1] if tail else f"exit status {r.returncode}"
-    if r.returncode < 0:
-        why = f"probe process was killed by signal {-r.returncode} ({why})"
-    return False, why
+    ok, why = _backend.run_probe(_PROBE, variant, dict(os.environ), timeout=300)
+    return ok, "ok" if ok else why
 
 
 def _precheck(variant: str) -> tuple[bool, str, str]:

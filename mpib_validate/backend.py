@@ -78,10 +78,12 @@ def llvm_candidates() -> list[str]:
     return sorted(seen, key=lambda p: (-(_llvm_version(p) or 0), len(p)))
 
 
-def _run_probe(backend: str, env: dict) -> tuple[bool, str]:
+def run_probe(script: str, arg: str, env: dict | None = None, timeout: float = 120) -> tuple[bool, str]:
+    """Run ``python -c script arg`` in a subprocess: ``(True, "")`` if it prints "ok...",
+    else ``(False, why)``. A probe that crashes or aborts costs only its own process."""
     try:
-        r = subprocess.run([sys.executable, "-c", _PROBE, backend], env=env,
-                           capture_output=True, text=True, timeout=120)
+        r = subprocess.run([sys.executable, "-c", script, arg], env=env or dict(os.environ),
+                           capture_output=True, text=True, timeout=timeout)
     except (OSError, subprocess.TimeoutExpired) as exc:
         return False, f"probe failed to run: {exc}"
     if r.returncode == 0 and r.stdout.startswith("ok"):
@@ -91,6 +93,10 @@ def _run_probe(backend: str, env: dict) -> tuple[bool, str]:
     if r.returncode < 0:
         why = f"probe process was killed by signal {-r.returncode} ({why})"
     return False, why
+
+
+def _run_probe(backend: str, env: dict) -> tuple[bool, str]:
+    return run_probe(_PROBE, backend, env)
 
 
 def _drjit_installed() -> bool:

@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
 
 from . import __version__
@@ -116,7 +115,7 @@ def cmd_bench(args) -> int:
     return 0
 
 
-def _read_mask(path: str, shape) -> "np.ndarray":
+def _read_mask(path: str, shape):
     import numpy as np
 
     from .exr import read_exr

@@ -76,7 +76,6 @@ def run_demo(out: Path, size: int = 256, spp: int = 1024, backend: str = "auto")
         save_scene(scene, scene_dir)
         result = render(scene, samples.stratified(spp), backend=backend, progress=True)
         files = write_render(out / f"trace-{family}.exr", result, scene)
-        cam = scene.camera
         print(f"{family}: {len(scene.cards)} cards, largest blur {scene.max_blur_radius():.1f} px, "
               f"traced {result.meta['sample_count']} spp on {result.meta['backend']} "
               f"in {result.meta['seconds']:.2f} s -> {files[0]}")

@@ -27,8 +27,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from ..atomic import write_text
-from .machine import machine_info
+from .machine import finish, machine_info, mean_table
 
 STRIP_ROWS = 48
 
@@ -254,27 +253,12 @@ def run(out: Path, quick: bool = True) -> dict:
     result = {"suite": "compositor", "quick": quick, "size": size, "reference_spp": ref_spp,
               "machine": machine_info(), "rows": rows, "hd": hd}
     result["summary"] = _summarise(result)
-    write_text(out / "compositor.json", json.dumps(result, indent=2, default=float) + "\n")
-    write_text(out / "compositor.md", _markdown(result))
-    for line in result["summary"]["headlines"]:
-        print(line)
-    print(f"wrote {out / 'compositor.md'}")
-    return result
+    return finish(out, "compositor", result, _markdown)
 
 
 def _mean_table(rows, family):
-    methods = []
-    for r in rows:
-        if r["family"] == family and r["method"] not in methods:
-            methods.append(r["method"])
-    table = []
-    for m in methods:
-        rs = [r for r in rows if r["family"] == family and r["method"] == m]
-        avg = lambda k: float(np.mean([r[k] for r in rs if k in r])) if any(k in r for r in rs) else math.nan
-        table.append({"method": m, **{k: avg(k) for k in (
-            "seconds", "planes", "psnr", "psnr_ob", "ssim", "ssim_ob", "flip", "psnr_hdr",
-            "delta_psnr_vs_plain")}})
-    return table
+    return mean_table(rows, family, ("seconds", "planes", "psnr", "psnr_ob", "ssim", "ssim_ob",
+                                     "flip", "psnr_hdr", "delta_psnr_vs_plain"))
 
 
 def _summarise(result) -> dict:

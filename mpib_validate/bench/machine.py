@@ -1,4 +1,4 @@
-"""What a benchmark ran on: machine, versions, backends."""
+"""What a benchmark ran on (machine, versions), and the helpers every suite shares."""
 
 from __future__ import annotations
 
@@ -36,3 +36,36 @@ def _cpu_name() -> str:
     except OSError:
         pass
     return platform.processor()
+
+
+def mean_table(rows, family: str, keys) -> list[dict]:
+    """One row per method (first-seen order): the mean of ``keys`` over the family's scenes."""
+    import math
+
+    import numpy as np
+
+    methods = []
+    for r in rows:
+        if r["family"] == family and r["method"] not in methods:
+            methods.append(r["method"])
+    table = []
+    for m in methods:
+        rs = [r for r in rows if r["family"] == family and r["method"] == m]
+        table.append({"method": m, **{
+            k: float(np.mean([r[k] for r in rs if k in r])) if any(k in r for r in rs) else math.nan
+            for k in keys}})
+    return table
+
+
+def finish(out, name: str, result: dict, markdown) -> dict:
+    """Write ``<name>.json`` and ``<name>.md`` (atomically) and print the headlines."""
+    import json
+
+    from ..atomic import write_text
+
+    write_text(out / f"{name}.json", json.dumps(result, indent=2, default=float) + "\n")
+    write_text(out / f"{name}.md", markdown(result))
+    for line in result.get("summary", {}).get("headlines", []):
+        print(line)
+    print(f"wrote {out / (name + '.md')}")
+    return result

@@ -8,12 +8,9 @@ the "varying" ones carry HDR highlights (peak ~170), hence their far larger RMSE
 
 from __future__ import annotations
 
-import json
-import math
 from pathlib import Path
 
-from ..atomic import write_text
-from .machine import machine_info
+from .machine import finish, machine_info
 
 
 def _mitsuba_rows(scene, spps, variant):
@@ -63,12 +60,7 @@ def run(out: Path, quick: bool = True) -> dict:
     result = {"suite": "references", "quick": quick, "machine": machine_info(), "rows": rows,
               "missing": [n for n, ok in (("mitsuba", have_mi), ("bpy", have_bpy)) if not ok]}
     result["summary"] = _summarise(rows)
-    write_text(out / "references.json", json.dumps(result, indent=2, default=float) + "\n")
-    write_text(out / "references.md", _markdown(result))
-    for h in result["summary"]["headlines"]:
-        print(h)
-    print(f"wrote {out / 'references.md'}")
-    return result
+    return finish(out, "references", result, _markdown)
 
 
 def _summarise(rows):

@@ -20,10 +20,8 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 
-from ..atomic import write_text
-from .machine import machine_info
+from .machine import finish, machine_info, mean_table
 
 
 def _methods(scene, res):
@@ -147,25 +145,11 @@ def run(out: Path, quick: bool = True) -> dict:
     result = {"suite": "refocus", "quick": quick, "size": size, "reference_spp": ref_spp,
               "machine": machine_info(), "rows": rows, "hd": hd}
     result["summary"] = _summarise(result)
-    write_text(out / "refocus.json", json.dumps(result, indent=2, default=float) + "\n")
-    write_text(out / "refocus.md", _markdown(result))
-    for line in result["summary"]["headlines"]:
-        print(line)
-    print(f"wrote {out / 'refocus.md'}")
-    return result
+    return finish(out, "refocus", result, _markdown)
 
 
 def _table(rows, family):
-    names = []
-    for r in rows:
-        if r["family"] == family and r["method"] not in names:
-            names.append(r["method"])
-    out = []
-    for n in names:
-        rs = [r for r in rows if r["family"] == family and r["method"] == n]
-        out.append({"method": n, **{k: float(np.mean([r[k] for r in rs])) for k in (
-            "seconds", "psnr", "psnr_ob", "ssim", "ssim_ob", "flip")}})
-    return out
+    return mean_table(rows, family, ("seconds", "psnr", "psnr_ob", "ssim", "ssim_ob", "flip"))
 
 
 def _summarise(result):
