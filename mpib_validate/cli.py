@@ -7,6 +7,7 @@ Subcommands:
   refocus    refocus a rendered picture (colour + depth) with the MPI compositor
   compare    image metrics between two EXRs
   bench      speed/error measurements, written to a report folder
+  dataset    many generated scenes with references (local processes or Dask)
   backends   which compute backends run on this machine
 """
 
@@ -110,8 +111,10 @@ def cmd_demo(args) -> int:
 
 def cmd_bench(args) -> int:
     from .bench import run_bench
+    from .executor import make_executor
 
-    run_bench(Path(args.out), suite=args.suite, quick=not args.full)
+    run_bench(Path(args.out), suite=args.suite, quick=not args.full,
+              executor=make_executor(args.workers, args.scheduler))
     return 0
 
 
@@ -211,6 +214,18 @@ def cmd_refocus(args) -> int:
     return 0
 
 
+def cmd_dataset(args) -> int:
+    from .dataset import build_dataset
+    from .executor import make_executor
+
+    ex = make_executor(args.workers, args.scheduler)
+    t0 = time.perf_counter()
+    summary = build_dataset(args.out, args.count, args.family, args.size, args.spp, args.start, ex)
+    print(f"dataset {args.out}: {summary['count']} complete samples; built {summary['built']}, "
+          f"skipped {summary['skipped']} already done ({ex.kind}, {time.perf_counter() - t0:.1f} s)")
+    return 0
+
+
 def cmd_backends(args) -> int:
     from . import backend
 
@@ -286,6 +301,10 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--out", default="out/bench", help="report folder (default out/bench)")
     b.add_argument("--suite", choices=["all", "tracer", "compositor", "refocus", "references", "scaling"], default="all")
     b.add_argument("--full", action="store_true", help="full sizes (slow); default is quick")
+    b.add_argument("--workers", type=int, default=0,
+                   help="spread per-scene work over local processes (times then share the machine)")
+    b.add_argument("--scheduler", default=None,
+                   help="Dask scheduler address, or 'local' for a LocalCluster")
     b.set_defaults(func=cmd_bench)
 
     c = sub.add_parser("compare", help="PSNR, SSIM, FLIP (and _ob variants) of two EXRs",
@@ -322,6 +341,20 @@ def build_parser() -> argparse.ArgumentParser:
                    help="depth at or beyond this is infinitely far (Cycles writes 1e10)")
     f.add_argument("--no-preview", action="store_true")
     f.set_defaults(func=cmd_refocus)
+
+    ds = sub.add_parser("dataset", help="many generated scenes with their ray-traced references",
+                        description="Build a dataset of generated card scenes and their renders "
+                                    "(one folder per seed, written atomically; a rerun resumes).")
+    ds.add_argument("--out", required=True, help="dataset folder")
+    ds.add_argument("--count", type=int, required=True, help="number of samples")
+    ds.add_argument("--start", type=int, default=0, help="first seed (default 0)")
+    ds.add_argument("--family", choices=["constant", "varying", "mixed"], default="mixed")
+    ds.add_argument("--size", type=_parse_size, default=(256, 256), help="WxH (default 256x256)")
+    ds.add_argument("--spp", type=int, default=1024, help="ray tracer samples per pixel")
+    ds.add_argument("--workers", type=int, default=0, help="local worker processes (0: in process)")
+    ds.add_argument("--scheduler", default=None,
+                    help="Dask scheduler address (tcp://host:8786), or 'local' for a LocalCluster")
+    ds.set_defaults(func=cmd_dataset)
 
     k = sub.add_parser("backends", help="which compute backends run here",
                        description="Probe numpy, Dr.Jit LLVM and Dr.Jit CUDA (in subprocesses).")

@@ -17,7 +17,13 @@ from pathlib import Path
 SUITES = ("tracer", "compositor", "refocus", "references", "scaling")
 
 
-def run_bench(out: Path, suite: str = "all", quick: bool = True) -> dict:
+def run_bench(out: Path, suite: str = "all", quick: bool = True, executor=None) -> dict:
+    """Run the suites; ``executor`` (see :mod:`mpib_validate.executor`) spreads the
+    per-scene work of the compositor and refocus suites. Their results are the same on
+    any executor, but times are only comparable when each scene had the machine alone
+    (the default, in-process)."""
+    import inspect
+
     out = Path(out)
     names = SUITES if suite == "all" else (suite,)
     results = {}
@@ -25,7 +31,8 @@ def run_bench(out: Path, suite: str = "all", quick: bool = True) -> dict:
         if name not in SUITES:
             raise ValueError(f"unknown benchmark suite {name!r}; choose from {SUITES} or all")
         module = importlib.import_module(f"{__name__}.{name}")
-        results[name] = module.run(out, quick=quick)
+        kw = {"executor": executor} if "executor" in inspect.signature(module.run).parameters else {}
+        results[name] = module.run(out, quick=quick, **kw)
     from .report import write_index
 
     print(f"wrote {write_index(out, results)}")

@@ -223,20 +223,27 @@ def _run_hd(cfg: dict) -> dict:
 # --------------------------------------------------------------------------------------
 
 
-def run(out: Path, quick: bool = True) -> dict:
-    from ..generate import FAMILIES, GeneratorSettings, generate
+def _scene_task(item) -> list[dict]:
+    """One scene's rows (a top-level function, so any executor can run it)."""
+    from ..generate import GeneratorSettings, generate
+
+    seed, family, size, ref_spp, repeats = item
+    print(f"bench compositor: {family}-{seed} ({size}x{size}) ...", flush=True)
+    scene = generate(seed, family, settings=GeneratorSettings(width=size, height=size))
+    return _scene_rows(scene, f"{family}-{seed}", family, ref_spp, repeats)
+
+
+def run(out: Path, quick: bool = True, executor=None) -> dict:
+    from ..executor import make_executor
+    from ..generate import FAMILIES
 
     out.mkdir(parents=True, exist_ok=True)
     size = 192 if quick else 512
     seeds = range(2) if quick else range(6)
     ref_spp = 2048 if quick else 8192
-    rows = []
-    for family in FAMILIES:
-        for seed in seeds:
-            scene = generate(seed, family, settings=GeneratorSettings(width=size, height=size))
-            label = f"{family}-{seed}"
-            print(f"bench compositor: {label} ({size}x{size}) ...", flush=True)
-            rows += _scene_rows(scene, label, family, ref_spp, repeats=1 if quick else 3)
+    items = [(seed, family, size, ref_spp, 1 if quick else 3)
+             for family in FAMILIES for seed in seeds]
+    rows = [r for part in (executor or make_executor()).map(_scene_task, items) for r in part]
     print("bench compositor: 1920x1080, 32 planes, radius 60 ...", flush=True)
     import tempfile
 

@@ -116,20 +116,27 @@ def _hd_input(path: Path) -> dict:
     return {"A": scene.camera.blur_parameter, "d_f": scene.camera.focus_disparity}
 
 
-def run(out: Path, quick: bool = True) -> dict:
-    from ..generate import FAMILIES, GeneratorSettings, generate
+def _scene_task(item) -> list[dict]:
+    """One scene's rows (a top-level function, so any executor can run it)."""
+    from ..generate import GeneratorSettings, generate
+
+    seed, family, size, ref_spp = item
+    print(f"bench refocus: {family}-{seed} ({size}x{size}) ...", flush=True)
+    scene = generate(seed, family, settings=GeneratorSettings(width=size, height=size))
+    return _scene_rows(scene, f"{family}-{seed}", family, ref_spp)
+
+
+def run(out: Path, quick: bool = True, executor=None) -> dict:
+    from ..executor import make_executor
+    from ..generate import FAMILIES
     from ..presets import PRESETS
 
     out.mkdir(parents=True, exist_ok=True)
     size = 192 if quick else 512
     seeds = range(2) if quick else range(6)
     ref_spp = 2048 if quick else 8192
-    rows = []
-    for family in FAMILIES:
-        for seed in seeds:
-            scene = generate(seed, family, settings=GeneratorSettings(width=size, height=size))
-            print(f"bench refocus: {family}-{seed} ({size}x{size}) ...", flush=True)
-            rows += _scene_rows(scene, f"{family}-{seed}", family, ref_spp)
+    items = [(seed, family, size, ref_spp) for family in FAMILIES for seed in seeds]
+    rows = [r for part in (executor or make_executor()).map(_scene_task, items) for r in part]
     print("bench refocus: mpib refocus at 1920x1080 ...", flush=True)
     hd = {}
     with tempfile.TemporaryDirectory() as tmp:
