@@ -299,7 +299,7 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Run a benchmark suite and write a report folder "
                                    "(Markdown + JSON).")
     b.add_argument("--out", default="out/bench", help="report folder (default out/bench)")
-    b.add_argument("--suite", choices=["all", "tracer", "compositor", "refocus", "references", "scaling"], default="all")
+    b.add_argument("--suite", choices=["all", "tracer", "compositor", "refocus", "hardcases", "references", "scaling"], default="all")
     b.add_argument("--full", action="store_true", help="full sizes (slow); default is quick")
     b.add_argument("--workers", type=int, default=0,
                    help="spread per-scene work over local processes (times then share the machine)")

@@ -5,8 +5,8 @@ Dr.Jit), ``compositor`` (Eq. 1, the middle setting, the exact renderer, the fast
 and the ray tracer, Mitsuba and Cycles at a sweep of sample counts, on exact layers),
 ``refocus`` (from colour + depth: the MPI with and without the fill, the presets, the
 classical baselines, Blender's Defocus node; ``mpib refocus`` at 1920x1080),
-``references`` (Mitsuba and Cycles time and noise against samples per pixel) and
-``scaling``. ``index.md`` gathers the headlines, Pareto plots and boundary crops.
+``hardcases`` (each named generator case, per method), ``references`` (Mitsuba and
+Cycles time and noise against samples per pixel) and ``scaling``. ``index.md`` gathers the headlines, Pareto plots and boundary crops.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from __future__ import annotations
 import importlib
 from pathlib import Path
 
-SUITES = ("tracer", "compositor", "refocus", "references", "scaling")
+SUITES = ("tracer", "compositor", "refocus", "hardcases", "references", "scaling")
 
 
 def run_bench(out: Path, suite: str = "all", quick: bool = True, executor=None) -> dict:

@@ -69,7 +69,7 @@ def _methods(scene, res):
     return methods
 
 
-def _scene_rows(scene, label, family, ref_spp):
+def _scene_rows(scene, label, family, ref_spp, only=None):
     from .. import samples, trace
     from ..evaluate import card_scene_mask, score
 
@@ -77,6 +77,8 @@ def _scene_rows(scene, label, family, ref_spp):
     mask = card_scene_mask(scene)
     rows = []
     for name, fn in _methods(scene, res).items():
+        if only is not None and name not in only:
+            continue
         fn()  # warm-up (kernel caches)
         t0 = time.perf_counter()
         out = fn()
