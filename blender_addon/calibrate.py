@@ -2,13 +2,37 @@
 
 
 
+def animated_value(id_data, data_path: str, frame, default):
+    """``data_path`` of ``id_data`` at ``frame`` from its keyframes (default if none).
+
+    During an animation render Blender evaluates animation on its render copy only, so
+    render handlers see the originals' un-animated values: read the F-curve instead.
+    Works with slotted actions (Blender 4.4+) and plain ones (4.2, 4.3)."""
+    ad = getattr(id_data, "animation_data", None)
+    if frame is None or ad is None or ad.action is None:
+        return default
+    fcurves = None
+    try:
+        from bpy_extras import anim_utils
+
+        bag = anim_utils.action_get_channelbag_for_slot(ad.action, ad.action_slot)
+        fcurves = bag.fcurves if bag is not None else None
+    except (ImportError, AttributeError):
+        pass
+    if fcurves is None:
+        fcurves = getattr(ad.action, "fcurves", None)
+    fc = fcurves.find(data_path) if fcurves is not None else None
+    return fc.evaluate(frame) if fc is not None else default
+
+
 class CalibrationError(ValueError):
     """A camera the refocus cannot model; the message says what to do."""
 
 
-def focus_distance_of(cam_obj) -> float:
+def focus_distance_of(cam_obj, frame=None) -> float:
     """Planar distance (scene units) the camera focuses at: its focus object's depth
-    along the view axis, else its focus distance."""
+    along the view axis, else its (possibly animated) focus distance. A focus object's
+    own animation is not followed during an animation render."""
     dof = cam_obj.data.dof
     if dof.focus_object is not None:
         local = cam_obj.matrix_world.inverted() @ dof.focus_object.matrix_world.translation
@@ -16,10 +40,10 @@ def focus_distance_of(cam_obj) -> float:
         if z <= 0:
             raise CalibrationError(f"the focus object '{dof.focus_object.name}' is behind the camera")
         return z
-    return dof.focus_distance
+    return animated_value(cam_obj.data, "dof.focus_distance", frame, dof.focus_distance)
 
 
-def camera_settings(scene, settings, width: int, height: int, warnings=None) -> dict:
+def camera_settings(scene, settings, width: int, height: int, warnings=None, frame=None) -> dict:
     """Lens values for :func:`mpib_validate.camera.blender_camera`, from the scene camera
     and the panel. Raises :class:`CalibrationError` with advice for the artist; appends
     advice that does not stop the refocus to ``warnings``."""
@@ -37,12 +61,13 @@ def camera_settings(scene, settings, width: int, height: int, warnings=None) -> 
                         f"(f/{cam.dof.aperture_fstop:g}) and focus settings may be defaults: "
                         f"set them under Camera > Depth of Field, or untick Camera F-Stop / "
                         f"Camera Focus and set them here")
-    fstop = cam.dof.aperture_fstop if settings.use_camera_fstop else settings.fstop
+    fstop = (animated_value(cam, "dof.aperture_fstop", frame, cam.dof.aperture_fstop)
+             if settings.use_camera_fstop else settings.fstop)
     if settings.use_camera_focus:
-        focus = focus_distance_of(cam_obj)
+        focus = focus_distance_of(cam_obj, frame)
     else:
         focus = settings.focus_distance
-    return {"lens_mm": cam.lens, "sensor_width_mm": cam.sensor_width,
+    return {"lens_mm": animated_value(cam, "lens", frame, cam.lens), "sensor_width_mm": cam.sensor_width,
             "sensor_height_mm": cam.sensor_height, "sensor_fit": cam.sensor_fit,
             "width": width, "height": height, "fstop": fstop, "focus_distance": focus,
             "unit_scale": scene.unit_settings.scale_length or 1.0}

@@ -47,7 +47,7 @@ def _output_path(scene, source: str) -> str:
     return os.path.join(folder or os.path.dirname(source), f"{stem}_refocused.exr")
 
 
-def refocus_file(context_or_scene, path: str, name: str):
+def refocus_file(context_or_scene, path: str, name: str, frame=None):
     """Refocus the passes in ``path`` with the scene's camera and panel settings.
     Returns ``(image, info)``; raises one of :func:`_errors` on bad input."""
     from mpib_validate.atomic import refuse_overwrite
@@ -66,7 +66,7 @@ def refocus_file(context_or_scene, path: str, name: str):
         wm.progress_update(1)
         H, W = passes.depth.shape
         warnings = []
-        cam = blender_camera(**calibrate.camera_settings(scene, settings, W, H, warnings))
+        cam = blender_camera(**calibrate.camera_settings(scene, settings, W, H, warnings, frame))
         d_f = cam.focus_disparity
         if not settings.use_camera_focus and settings.focus_mode == "PIXEL":
             d_f = focus_from_pixel(passes, settings.focus_pixel[0], settings.focus_pixel[1])
@@ -186,11 +186,10 @@ def refocus_frame_file(scene, frame_path: str) -> None:
                                  "with the Depth pass")
         return
     stem = os.path.splitext(os.path.basename(frame_path))[0]
+    old = settings.save_exr
     try:
-        old = settings.save_exr
-        settings.save_exr = False
-        image, info = refocus_file(scene, frame_path, stem + SUFFIX)
-        settings.save_exr = old
+        settings.save_exr = False  # the sibling below is this mode's output
+        image, info = refocus_file(scene, frame_path, stem + SUFFIX, frame=scene.frame_current)
         from mpib_validate.refocus import RefocusResult, write_result
 
         out = os.path.join(os.path.dirname(frame_path), f"{stem}_refocused.exr")
@@ -202,6 +201,8 @@ def refocus_frame_file(scene, frame_path: str) -> None:
         settings.last_message = f"frame {scene.frame_current}: " + _summary(info)
     except _errors() as exc:
         settings.last_message = f"error: frame {scene.frame_current}: {exc}"
+    finally:
+        settings.save_exr = old
 
 
 classes = (MPIB_OT_refocus_render, MPIB_OT_refocus_file, MPIB_OT_pick_focus)

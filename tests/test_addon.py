@@ -110,3 +110,14 @@ def test_beats_the_defocus_node_at_occlusion_boundaries(session):
     ours = psnr(ref, np.clip(refocused, 0, 1), mask)
     theirs = psnr(ref, np.clip(node, 0, 1), mask)
     assert ours - theirs > 10.0, (ours, theirs)
+
+
+def test_animation_frames_are_refocused_with_the_animated_focus(session):
+    """An animation rendered to multilayer EXR with Refocus Animation on: every written
+    frame gets its `_refocused.exr` sibling, focused where the camera's keyed focus
+    distance is at that frame (6 m, then 1.5 m)."""
+    out, _ = session
+    anim = {int(k): v for k, v in out["animation"].items()}
+    assert all(v["written"] and v["refocused"] for v in anim.values()), (anim, out["animation_message"])
+    assert anim[1]["focus_disparity"] == pytest.approx(1 / 6.0, rel=1e-4)
+    assert anim[2]["focus_disparity"] == pytest.approx(1 / 1.5, rel=1e-4)
