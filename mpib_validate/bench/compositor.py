@@ -293,12 +293,41 @@ def _summarise(result) -> dict:
                 f"(PSNR_ob {get['eq1-uniform32']['psnr_ob']:.1f}) on 32 uniform planes; the middle "
                 f"setting k=2 {get['middle-k2']['psnr']:.1f} dB, the exact renderer "
                 f"{get['exact-1024spp']['psnr']:.1f} dB.")
+        match = _cycles_match(get, "eq1-adaptive")
+        if match:
+            heads.append(f"{family}: {match}")
         worst = [r["delta_psnr_vs_plain"] for r in t
                  if r["method"] in ("path-fft", "path-crop", "path-auto+crop")]
         if worst:
             heads.append(f"{family}: FFT and crop change PSNR by at most "
                          f"{max(abs(w) for w in worst):.4f} dB against the plain path.")
     return {"headlines": heads, "tables": tables}
+
+
+def _cycles_match(get: dict, method: str) -> str:
+    """How long Cycles would take to reach ``method``'s PSNR: interpolated in log time
+    between the sweep's points, or extrapolated past the last one with Monte Carlo's
+    1/sqrt(spp) law (6.02 dB per 4x samples, i.e. per 4x time)."""
+    sweep = sorted((r["seconds"], r["psnr"], int(m.split("-")[1][:-3])) for m, r in get.items()
+                   if m.startswith("cycles-") and m.endswith("spp"))
+    if not sweep or method not in get:
+        return ""
+    target, t_m = get[method]["psnr"], get[method]["seconds"]
+    t_c = spp = None
+    for (t0, p0, s0), (t1, p1, s1) in zip(sweep, sweep[1:]):
+        if p0 <= target <= p1:
+            f = (target - p0) / (p1 - p0)
+            t_c = math.exp(math.log(t0) + f * (math.log(t1) - math.log(t0)))
+            spp = s0 * (s1 / s0) ** f
+    if t_c is None and target > sweep[-1][1]:
+        t_last, p_last, s_last = sweep[-1]
+        k = 4 ** ((target - p_last) / 6.02)
+        t_c, spp = t_last * k, s_last * k
+    if t_c is None:
+        return (f"Cycles' lowest sample count ({sweep[0][2]} spp, {sweep[0][0]:.2f} s) already "
+                f"beats {method}'s {target:.1f} dB.")
+    return (f"Cycles needs about {spp:.0f} spp ({t_c:.2f} s) to reach the {target:.1f} dB that "
+            f"{method} reaches in {t_m:.3f} s: the compositor is {t_c / t_m:.0f}x faster there.")
 
 
 def _fmt(v, nd=2):

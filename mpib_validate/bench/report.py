@@ -96,9 +96,9 @@ def crop_grid(path: Path, size: int = 192, crop: int = 48) -> list[str]:
         D = depth_to_disparity(res.depth)
         aif = res.all_in_focus[..., :3]
         imgs = {"reference (ray tracer)": res.bokeh[..., :3],
-                "MPI, exact layers": composite(layers_from_cards(scene), A, df)[..., :3],
-                "MPI, colour+depth+fill": composite(layers_from_passes(aif, D, A)[0], A, df)[..., :3],
-                "MPI, no fill": composite(layers_from_passes(aif, D, A, PassesSettings(fill=False))[0], A, df)[..., :3],
+                "MPI exact layers": composite(layers_from_cards(scene), A, df)[..., :3],
+                "MPI colour+depth+fill": composite(layers_from_passes(aif, D, A)[0], A, df)[..., :3],
+                "MPI no fill": composite(layers_from_passes(aif, D, A, PassesSettings(fill=False))[0], A, df)[..., :3],
                 "scatter": baselines.scatter(aif, D, A, df),
                 "all in focus (input)": aif}
         try:
@@ -108,7 +108,7 @@ def crop_grid(path: Path, size: int = 192, crop: int = 48) -> list[str]:
         except ImportError:
             pass
         names = list(imgs)
-        err = np.abs(imgs["MPI, colour+depth+fill"] - imgs["reference (ray tracer)"]).sum(-1)
+        err = np.abs(imgs["MPI colour+depth+fill"] - imgs["reference (ray tracer)"]).sum(-1)
         err[~card_scene_mask(scene)] = 0
         h = crop // 2
         err[:h], err[-h:], err[:, :h], err[:, -h:] = 0, 0, 0, 0
@@ -208,7 +208,7 @@ def write_index(out: Path, results: dict) -> Path:
         lines += ["## At occlusion boundaries", "",
                   "Crops (48x48, x3) where the colour + depth MPI errs most inside the "
                   "occlusion-boundary mask; rows: constant, varying; columns: "
-                  + ", ".join(names) + ".", "", "![crops](crops.png)", ""]
+                  + "; ".join(names) + ".", "", "![crops](crops.png)", ""]
     except ImportError:
         pass
     try:
