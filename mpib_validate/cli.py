@@ -215,6 +215,8 @@ def cmd_refocus(args) -> int:
 
 
 def cmd_dataset(args) -> int:
+    import time
+
     from .dataset import build_dataset
     from .executor import make_executor
 

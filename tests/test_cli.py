@@ -18,7 +18,7 @@ def mpib(*args, cwd=None):
 
 
 def test_every_subcommand_has_help():
-    for sub in ("generate", "render", "compare", "demo", "bench", "backends"):
+    for sub in ("generate", "render", "refocus", "compare", "demo", "bench", "dataset", "backends"):
         r = mpib(sub, "--help")
         assert r.returncode == 0 and "usage: mpib " + sub in r.stdout
 
@@ -97,3 +97,12 @@ def test_render_with_other_engines(tmp_path, engine, spp):
     assert rgba_from(img).shape == (24, 32, 4) and "Depth.Z" in img.channels
     meta = json.loads(img.header["mpib"])
     assert meta["sample_count"] == spp and engine in (meta["engine"] + meta["backend"] + meta["samples"])
+
+
+def test_dataset_command_builds_and_resumes(tmp_path):
+    args = ("dataset", "--out", tmp_path / "ds", "--count", 2, "--size", "24x16", "--spp", 8)
+    r = mpib(*args)
+    assert r.returncode == 0, r.stderr
+    assert "2 complete samples; built 2, skipped 0" in r.stdout
+    r = mpib(*args)
+    assert r.returncode == 0 and "built 0, skipped 2" in r.stdout
