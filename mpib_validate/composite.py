@@ -228,17 +228,17 @@ def composite(mpi: MPI, blur_parameter: float, focus_disparity: float,
         blurred = _blur_layer(layer, rho, box, canvas, settings, cell)
         np.clip(blurred[..., 3], 0.0, 1.0, out=blurred[..., 3])
         np.maximum(blurred[..., :3], 0.0, out=blurred[..., :3])
-        # colour bound for the safe division: straight colour of the layer
-        a = layer.rgba[..., 3:4]
-        straight = np.divide(layer.rgba[..., :3], a, out=np.zeros_like(layer.rgba[..., :3]),
-                             where=a > 0)
-        cmax = np.maximum(cmax, straight.reshape(-1, 3).max(axis=0))
+        if mpi.colour_max is None:  # colour bound for the safe division
+            a = layer.rgba[..., 3:4]
+            straight = np.divide(layer.rgba[..., :3], a, out=np.zeros_like(layer.rgba[..., :3]),
+                                 where=a > 0)
+            cmax = np.maximum(cmax, straight.reshape(-1, 3).max(axis=0))
         y0, y1, x0, x1 = box
         region = acc[y0 - m:y1 - m, x0 - m:x1 - m]
         # acc <- acc (1 - a_blur) + [c a]_blur   (premultiplied colour, and the normaliser)
         region *= 1.0 - blurred[..., 3:4]
         region += blurred
-    return _normalise(acc, cmax)
+    return _normalise(acc, cmax if mpi.colour_max is None else mpi.colour_max)
 
 
 def _normalise(acc: np.ndarray, cmax: np.ndarray) -> np.ndarray:

@@ -91,7 +91,6 @@ def push_pull(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
     Push: from coarse to fine, ``v = w v + (1 - w) up(v_coarse)`` with bilinear ``up``.
     Pixels with weight 1 keep their value exactly; where no pixel has weight, zeros.
     """
-    from scipy import ndimage
 
     v = np.asarray(values, np.float64)
     w = np.clip(np.asarray(weights, np.float64), 0.0, 1.0)
@@ -118,15 +117,23 @@ def push_pull(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
     filled = np.divide(pyr[-1][0], pyr[-1][1][..., None], out=np.zeros_like(pyr[-1][0]),
                        where=pyr[-1][1][..., None] > 0)
     for lv, lw in reversed(pyr[:-1]):
-        h, wd = lw.shape
-        zy = (np.arange(h) + 0.5) / 2 - 0.5
-        zx = (np.arange(wd) + 0.5) / 2 - 0.5
-        yy, xx = np.meshgrid(zy, zx, indexing="ij")
-        up = np.stack([ndimage.map_coordinates(filled[..., c], [yy, xx], order=1, mode="nearest")
-                       for c in range(filled.shape[2])], axis=-1)
+        up = _upsample2(filled, lw.shape)
         own = np.divide(lv, lw[..., None], out=np.zeros_like(lv), where=lw[..., None] > 0)
         filled = lw[..., None] * own + (1.0 - lw[..., None]) * up
     return filled
+
+
+def _upsample2(coarse: np.ndarray, shape) -> np.ndarray:
+    """Bilinear 2x up-sampling with pixel-area alignment (fine pixel i sits at coarse
+    coordinate (i + 0.5) / 2 - 0.5), edges clamped; separable, so two passes of
+    weights 3/4 and 1/4."""
+    def axis_up(a, n, ax):
+        i = np.arange(n)
+        near = np.clip(i // 2, 0, a.shape[ax] - 1)
+        other = np.clip(np.where(i % 2 == 0, i // 2 - 1, i // 2 + 1), 0, a.shape[ax] - 1)
+        return 0.75 * np.take(a, near, axis=ax) + 0.25 * np.take(a, other, axis=ax)
+
+    return axis_up(axis_up(coarse, shape[0], 0), shape[1], 1)
 
 
 def fill_hidden(colour: np.ndarray, disparity: np.ndarray, region: np.ndarray,

@@ -233,9 +233,8 @@ def correlate_fft(padded: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     spec *= kf[..., None]
     full = fft.irfft2(spec, s=sh, axes=(0, 1), workers=-1)
     out = np.ascontiguousarray(full[2 * R:H, 2 * R:W], dtype=np.float32)
-    # clear rounding noise relative to each channel's largest input value (layer content
-    # is non-negative: premultiplied radiance and alpha)
-    peak = np.maximum(padded.max(axis=(0, 1)), -padded.min(axis=(0, 1)))
+    # clear rounding noise relative to each channel's largest input magnitude
+    peak = np.abs(padded).max(axis=(0, 1))
     out[np.abs(out) < FFT_FLOOR * peak] = 0.0
     np.maximum(out, 0.0, out=out)
     return out

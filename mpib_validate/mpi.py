@@ -57,6 +57,9 @@ class MPI:
     width: int
     margin: int = 0
     layers: list[Layer] = field(default_factory=list)
+    #: the largest straight colour per channel, when the builder knows it (saves the
+    #: compositor a pass over every layer); None: computed from the layers
+    colour_max: np.ndarray | None = None
 
     @property
     def canvas_shape(self) -> tuple[int, int]:
@@ -314,13 +317,27 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
             order = keep[np.argsort(index.ravel()[keep], kind="stable")]
             plane_of = index.ravel()[order]
             bounds = np.searchsorted(plane_of, np.arange(len(planes) + 1))
-            shares.append((canvas_index[order], a[order], colour[order], bounds))
+            # each plane's bounding box within this share, in one pass per coordinate
+            r = (rows[order] + y0).astype(np.int32)
+            c = (cols[order] + x0).astype(np.int32)
+            boxes = np.zeros((len(planes), 4), np.int64)
+            full = np.flatnonzero(bounds[1:] > bounds[:-1])
+            if len(full):
+                starts = bounds[:-1][full]
+                boxes[full, 0] = np.minimum.reduceat(r, starts)
+                boxes[full, 1] = np.maximum.reduceat(r, starts) + 1
+                boxes[full, 2] = np.minimum.reduceat(c, starts)
+                boxes[full, 3] = np.maximum.reduceat(c, starts) + 1
+            shares.append((canvas_index[order], a[order], colour[order], bounds, boxes))
 
     mpi = MPI(height, width, margin)
+    cmax = [c.max(axis=0) for _, _, c, _, _ in shares if len(c)]
+    mpi.colour_max = (np.max(cmax, axis=0).astype(np.float32) if cmax
+                      else np.zeros(3, np.float32))
     layer = np.zeros((hc * wc, 4), np.float32)
     for p, d_p in enumerate(planes):
-        touched = []
-        for where, a, colour, bounds in shares:  # sheets far to near: nearer goes "over"
+        touched, box = [], None
+        for where, a, colour, bounds, boxes in shares:  # far to near: nearer goes "over"
             s0, s1 = bounds[p], bounds[p + 1]
             if s0 == s1:
                 continue
@@ -328,12 +345,13 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
             premult = np.concatenate([colour[s0:s1] * ap, ap], axis=1)
             layer[px] = layer[px] * (1.0 - ap).astype(np.float32) + premult.astype(np.float32)
             touched.append(px)
+            b = boxes[p]
+            box = tuple(b) if box is None else (min(box[0], b[0]), max(box[1], b[1]),
+                                                min(box[2], b[2]), max(box[3], b[3]))
         if touched:
-            px = np.concatenate(touched)
-            r, c = np.divmod(px, wc)
-            box = (int(r.min()), int(r.max()) + 1, int(c.min()), int(c.max()) + 1)
-            mpi.add(float(d_p), layer.reshape(hc, wc, 4), 0, 0, box=box)
-            layer[px] = 0.0  # clear only what this plane wrote
+            mpi.add(float(d_p), layer.reshape(hc, wc, 4), 0, 0, box=tuple(int(v) for v in box))
+            for px in touched:
+                layer[px] = 0.0  # clear only what this plane wrote
     return mpi
 
 
