@@ -302,7 +302,10 @@ def build_parser() -> argparse.ArgumentParser:
                                    "(Markdown + JSON).")
     b.add_argument("--out", default="out/bench", help="report folder (default out/bench)")
     b.add_argument("--suite", choices=["all", "tracer", "compositor", "refocus", "hardcases", "references", "scaling"], default="all")
-    b.add_argument("--full", action="store_true", help="full sizes (slow); default is quick")
+    mode = b.add_mutually_exclusive_group()
+    mode.add_argument("--quick", action="store_true",
+                      help="small scenes, a few minutes on 2 cores (the default)")
+    mode.add_argument("--full", action="store_true", help="larger scenes and more samples (slow)")
     b.add_argument("--workers", type=int, default=0,
                    help="spread per-scene work over local processes (times then share the machine)")
     b.add_argument("--scheduler", default=None,

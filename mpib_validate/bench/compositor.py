@@ -27,7 +27,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from .machine import finish, machine_info, mean_table
+from .machine import finish, machine_info, mean_table, peak_python_mb
 
 STRIP_ROWS = 48
 
@@ -103,6 +103,7 @@ def _scene_rows(scene, label: str, family: str, ref_spp: int, repeats: int) -> l
         reps = 1 if name in ("path-plain", "path-crop") or kind == "exact" else repeats
         out, seconds = _time(fn, reps)
         rows.append({"scene": label, "family": family, "method": name, "seconds": seconds,
+                     "peak_mb": peak_python_mb(fn) if kind != "exact" else math.nan,
                      "planes": len(mpi.layers), **score(ref, out, mask)})
     rows += _renderer_rows(scene, label, family, ref, mask)
     plain = next(r for r in rows if r["method"] == "path-plain")
@@ -264,8 +265,8 @@ def run(out: Path, quick: bool = True, executor=None) -> dict:
 
 
 def _mean_table(rows, family):
-    return mean_table(rows, family, ("seconds", "planes", "psnr", "psnr_ob", "ssim", "ssim_ob",
-                                     "flip", "psnr_hdr", "delta_psnr_vs_plain"))
+    return mean_table(rows, family, ("seconds", "peak_mb", "planes", "psnr", "psnr_ob", "ssim",
+                                     "ssim_ob", "flip", "psnr_hdr", "delta_psnr_vs_plain"))
 
 
 def _summarise(result) -> dict:
@@ -351,10 +352,11 @@ def _markdown(result) -> str:
               "noise (two independent sample sets).", ""]
     for family, table in result["summary"]["tables"].items():
         lines += [f"## {family} disparity", "",
-                  "| method | planes | time (s) | PSNR | PSNR_ob | SSIM | SSIM_ob | FLIP | ΔPSNR vs plain |",
-                  "|---|---|---|---|---|---|---|---|---|"]
+                  "| method | planes | time (s) | peak numpy MB | PSNR | PSNR_ob | SSIM | SSIM_ob | FLIP | ΔPSNR vs plain |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]
         for r in table:
             lines.append(f"| {r['method']} | {_fmt(r['planes'], 1)} | {_fmt(r['seconds'], 3)} | "
+                         f"{_fmt(r['peak_mb'], 1)} | "
                          f"{_fmt(r['psnr'])} | {_fmt(r['psnr_ob'])} | {_fmt(r['ssim'], 4)} | "
                          f"{_fmt(r['ssim_ob'], 4)} | {_fmt(r['flip'], 4)} | "
                          f"{_fmt(r['delta_psnr_vs_plain'], 4)} |")

@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 
-from .machine import finish, machine_info, mean_table
+from .machine import finish, machine_info, mean_table, peak_python_mb
 
 
 def _methods(scene, res):
@@ -85,7 +85,11 @@ def _scene_rows(scene, label, family, ref_spp, only=None):
         seconds = time.perf_counter() - t0
         if isinstance(out, tuple):  # (image, the method's own time)
             out, seconds = out
+            peak = math.nan  # Blender's memory is its own
+        else:
+            peak = peak_python_mb(fn)
         rows.append({"scene": label, "family": family, "method": name, "seconds": seconds,
+                     "peak_mb": peak,
                      **score(res.bokeh, out, mask)})
     return rows
 
@@ -158,7 +162,8 @@ def run(out: Path, quick: bool = True, executor=None) -> dict:
 
 
 def _table(rows, family):
-    return mean_table(rows, family, ("seconds", "psnr", "psnr_ob", "ssim", "ssim_ob", "flip"))
+    return mean_table(rows, family, ("seconds", "peak_mb", "psnr", "psnr_ob", "ssim", "ssim_ob",
+                                     "flip"))
 
 
 def _summarise(result):
@@ -200,10 +205,11 @@ def _markdown(result) -> str:
     lines += [f"- {h}" for h in result["summary"]["headlines"]] + [""]
     for family, t in result["summary"]["tables"].items():
         lines += [f"## {family} disparity", "",
-                  "| method | time (s) | PSNR | PSNR_ob | SSIM | SSIM_ob | FLIP |",
-                  "|---|---|---|---|---|---|---|"]
+                  "| method | time (s) | peak numpy MB | PSNR | PSNR_ob | SSIM | SSIM_ob | FLIP |",
+                  "|---|---|---|---|---|---|---|---|"]
         for r in t:
-            lines.append(f"| {r['method']} | {_fmt(r['seconds'], 3)} | {_fmt(r['psnr'])} | "
+            lines.append(f"| {r['method']} | {_fmt(r['seconds'], 3)} | {_fmt(r['peak_mb'], 1)} | "
+                         f"{_fmt(r['psnr'])} | "
                          f"{_fmt(r['psnr_ob'])} | {_fmt(r['ssim'], 4)} | {_fmt(r['ssim_ob'], 4)} | "
                          f"{_fmt(r['flip'], 4)} |")
         lines.append("")
