@@ -207,12 +207,4 @@ def refocus_frame_file(scene, frame_path: str) -> None:
 
 classes = (MPIB_OT_refocus_render, MPIB_OT_refocus_file, MPIB_OT_pick_focus)
 
-
-def register():
-    for c in classes:
-        bpy.utils.register_class(c)
-
-
-def unregister():
-    for c in reversed(classes):
-        bpy.utils.unregister_class(c)
+register, unregister = bpy.utils.register_classes_factory(classes)

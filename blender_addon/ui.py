@@ -58,12 +58,4 @@ class MPIB_PT_compositor(bpy.types.Panel):
 
 classes = (MPIB_PT_image, MPIB_PT_compositor)
 
-
-def register():
-    for c in classes:
-        bpy.utils.register_class(c)
-
-
-def unregister():
-    for c in reversed(classes):
-        bpy.utils.unregister_class(c)
+register, unregister = bpy.utils.register_classes_factory(classes)
