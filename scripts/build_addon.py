@@ -39,6 +39,16 @@ def blender_ext() -> Path:
     return found[-1]
 
 
+def _can_build_offline() -> bool:
+    """True when setuptools >= 68 and wheel are installed (no isolated build env needed)."""
+    try:
+        import setuptools
+        import wheel  # noqa: F401
+    except ImportError:
+        return False
+    return int(setuptools.__version__.split(".")[0]) >= 68
+
+
 def run(cmd, **kw):
     print("+", " ".join(map(str, cmd)), flush=True)
     subprocess.run(cmd, check=True, **kw)
@@ -47,18 +57,23 @@ def run(cmd, **kw):
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", default=str(ROOT / "dist"), help="output folder for the zip")
+    ap.add_argument("--fetch-only", action="store_true",
+                    help="only download the dependency wheels the manifest names (set-up step)")
     args = ap.parse_args()
     manifest = tomllib.loads((ADDON / "blender_manifest.toml").read_text())
     wheels_dir = ADDON / "wheels"
     wheels_dir.mkdir(exist_ok=True)
     wanted = [Path(w).name for w in manifest.get("wheels", [])]
-    with tempfile.TemporaryDirectory() as tmp:
-        run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps",
-             "-w", tmp, str(ROOT)])
-        for whl in Path(tmp).glob("*.whl"):
-            shutil.copy2(whl, wheels_dir / whl.name)
+    if not args.fetch_only:
+        # the project's own wheel; offline when the environment has a recent setuptools
+        flags = ["--no-build-isolation"] if _can_build_offline() else []
+        with tempfile.TemporaryDirectory() as tmp:
+            run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", *flags, "-w", tmp,
+                 str(ROOT)])
+            for whl in Path(tmp).glob("*.whl"):
+                shutil.copy2(whl, wheels_dir / whl.name)
     for name in wanted:
-        if (wheels_dir / name).exists():
+        if (wheels_dir / name).exists() or name.startswith("mpib_validate-"):
             continue
         m = WHEEL_RE.match(name)
         if m is None:
@@ -69,6 +84,9 @@ def main() -> int:
         run([sys.executable, "-m", "pip", "download", "-q", "--no-deps", "--only-binary=:all:",
              "--python-version", "3.11", *plats, "-d", str(wheels_dir),
              f"{m['name']}=={m['version']}"])
+    if args.fetch_only:
+        print(f"build_addon: dependency wheels ready in {wheels_dir}")
+        return 0
     missing = [n for n in wanted if not (wheels_dir / n).exists()]
     if missing:
         sys.exit(f"build_addon: wheels named in the manifest are missing: {missing}")

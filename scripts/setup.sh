@@ -22,5 +22,9 @@ fi
 "$PY" -c 'import sys; assert sys.version_info[:2] == (3, 11), "Python 3.11 is required, got %s" % sys.version' 
 [ -x "$VENV/bin/python" ] || "$PY" -m venv "$VENV"
 "$VENV/bin/python" -m pip install -q --disable-pip-version-check --upgrade "pip==25.2"
+"$VENV/bin/python" -m pip install -q --disable-pip-version-check "setuptools==80.9.0" "wheel==0.45.1"
 "$VENV/bin/python" -m pip install -q --disable-pip-version-check -c constraints.txt -e ".[all]"
+# the Blender extension's bundled wheels (OpenEXR, SciPy), fetched now so that building
+# the zip later (make addon, the add-on tests) needs no network
+"$VENV/bin/python" scripts/build_addon.py --fetch-only
 echo "setup: environment ready in $VENV"
