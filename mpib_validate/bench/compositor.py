@@ -15,19 +15,17 @@ times the whole frame.
 
 from __future__ import annotations
 
-import json
 import math
 import resource
 import statistics
-import subprocess
-import sys
 import time
 from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 
-from .machine import finish, machine_info, mean_table, peak_python_mb
+from .machine import (finish, machine_info, mean_table, peak_python_mb, run_worker,
+                      worker_main)
 
 STRIP_ROWS = 48
 
@@ -214,11 +212,7 @@ def _hd_worker(cfg: dict) -> dict:
 
 
 def _run_hd(cfg: dict) -> dict:
-    r = subprocess.run([sys.executable, "-m", "mpib_validate.bench.compositor", "--worker",
-                        json.dumps(cfg)], capture_output=True, text=True)
-    if r.returncode != 0:
-        return {"error": ((r.stderr or r.stdout).strip().splitlines() or ["failed"])[-1]}
-    return json.loads(r.stdout.strip().splitlines()[-1])
+    return run_worker("mpib_validate.bench.compositor", cfg)
 
 
 # --------------------------------------------------------------------------------------
@@ -374,8 +368,4 @@ def _markdown(result) -> str:
 
 
 if __name__ == "__main__":
-    import argparse
-
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--worker", required=True)
-    print(json.dumps(_hd_worker(json.loads(ap.parse_args().worker))))
+    worker_main(_hd_worker)

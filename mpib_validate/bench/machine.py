@@ -85,3 +85,27 @@ def peak_python_mb(fn) -> float:
         return tracemalloc.get_traced_memory()[1] / 2 ** 20
     finally:
         tracemalloc.stop()
+
+
+def run_worker(module: str, cfg: dict) -> dict:
+    """Run one measurement in a fresh process (``python -m module --worker JSON``), so its
+    peak memory is its own; returns the JSON it printed last, or ``{"error": line}``."""
+    import json
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", module, "--worker", json.dumps(cfg)],
+                       capture_output=True, text=True)
+    if r.returncode != 0:
+        return {"error": ((r.stderr or r.stdout).strip().splitlines() or ["failed"])[-1]}
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def worker_main(fn) -> None:
+    """The ``--worker JSON`` entry point of a suite module: print ``fn(cfg)`` as JSON."""
+    import argparse
+    import json
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--worker", required=True)
+    print(json.dumps(fn(json.loads(ap.parse_args().worker))))

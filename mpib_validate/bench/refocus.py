@@ -11,17 +11,15 @@ cards for reference. A second part times ``mpib refocus`` end to end at 1920x108
 
 from __future__ import annotations
 
-import json
 import math
 import resource
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 
-from .machine import finish, machine_info, mean_table, peak_python_mb
+from .machine import (finish, machine_info, mean_table, peak_python_mb, run_worker,
+                      worker_main)
 
 
 def _methods(scene, res):
@@ -151,10 +149,7 @@ def run(out: Path, quick: bool = True, executor=None) -> dict:
         for preset in PRESETS:
             cfg = {**cam, "input": str(inp), "output": str(Path(tmp) / f"{preset}.exr"),
                    "preset": preset}
-            r = subprocess.run([sys.executable, "-m", "mpib_validate.bench.refocus", "--worker",
-                                json.dumps(cfg)], capture_output=True, text=True)
-            hd[preset] = (json.loads(r.stdout.strip().splitlines()[-1]) if r.returncode == 0
-                          else {"error": (r.stderr.strip().splitlines() or ["failed"])[-1]})
+            hd[preset] = run_worker("mpib_validate.bench.refocus", cfg)
     result = {"suite": "refocus", "quick": quick, "size": size, "reference_spp": ref_spp,
               "machine": machine_info(), "rows": rows, "hd": hd}
     result["summary"] = _summarise(result)
@@ -222,8 +217,4 @@ def _markdown(result) -> str:
 
 
 if __name__ == "__main__":
-    import argparse
-
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--worker", required=True)
-    print(json.dumps(_hd_worker(json.loads(ap.parse_args().worker))))
+    worker_main(_hd_worker)

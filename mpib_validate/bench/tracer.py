@@ -9,12 +9,9 @@ a warm-up (the first Dr.Jit run also compiles its kernel, reported separately).
 
 from __future__ import annotations
 
-import argparse
 import json
 import resource
 import statistics
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -22,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import write_text
-from .machine import machine_info
+from .machine import machine_info, run_worker, worker_main
 
 TARGET_SPEEDUP = 20.0
 TARGET_LLVM_SECONDS = 10.0
@@ -53,11 +50,7 @@ def _worker(cfg: dict) -> dict:
 
 
 def _run_worker(cfg: dict) -> dict:
-    r = subprocess.run([sys.executable, "-m", "mpib_validate.bench.tracer", "--worker",
-                        json.dumps(cfg)], capture_output=True, text=True)
-    if r.returncode != 0:
-        return {"error": (r.stderr or r.stdout).strip().splitlines()[-1:] or ["failed"]}
-    return json.loads(r.stdout.strip().splitlines()[-1])
+    return run_worker("mpib_validate.bench.tracer", cfg)
 
 
 def run(out: Path, quick: bool = True) -> dict:
@@ -153,7 +146,4 @@ def _markdown(result) -> str:
 
 
 if __name__ == "__main__":
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--worker", required=True)
-    args = ap.parse_args()
-    print(json.dumps(_worker(json.loads(args.worker))))
+    worker_main(_worker)
