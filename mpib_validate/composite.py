@@ -148,23 +148,38 @@ def _blur_reduced(padded: np.ndarray, pad: int, h: int, w: int, s: int, kc, sett
     covers every coarse cell that the coarse kernel (radius ``Rc``) and the bilinear
     interpolation read.
     """
-    from scipy import ndimage
-
     Rc = _k.kernel_radius(kc)
     Hc = -(-h // s) + 2 * Rc + 2
     Wc = -(-w // s) + 2 * Rc + 2
     f0 = pad - (Rc + 1) * s  # coarse cell k covers rows [f0 + k s, f0 + (k + 1) s)
     fine = padded[f0:f0 + Hc * s, f0:f0 + Wc * s]
-    coarse = fine.reshape(Hc, s, Wc, s, -1).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
+    C = padded.shape[2]
+    # area average: sum the s rows of each cell (contiguous adds), then its s columns
+    rows = fine.reshape(Hc, s, Wc * s, C).sum(axis=1, dtype=np.float64)
+    coarse = (rows.reshape(Hc, Wc, s, C).sum(axis=2) / (s * s)).astype(np.float32)
     blurred = _correlate(coarse, kc, settings)  # coarse cells Rc .. Hc - Rc - 1
     # fine output pixel centre in units of blurred cells (cell centres at integers)
     ty = (np.arange(h) + 0.5 + pad - f0) / s - 0.5 - Rc
     tx = (np.arange(w) + 0.5 + pad - f0) / s - 0.5 - Rc
-    yy, xx = np.meshgrid(ty, tx, indexing="ij")
-    out = np.empty((h, w, padded.shape[2]), np.float32)
-    for c in range(padded.shape[2]):
-        out[..., c] = ndimage.map_coordinates(blurred[..., c], [yy, xx], order=1, mode="nearest")
-    return out
+    return _bilinear_separable(blurred, ty, tx)
+
+
+def _bilinear_separable(a: np.ndarray, ty: np.ndarray, tx: np.ndarray) -> np.ndarray:
+    """Bilinear interpolation of ``(h, w, C)`` at the grid ``ty x tx`` (cell centres at
+    integers, edges clamped), as two 1-D passes: the same values as
+    ``ndimage.map_coordinates(order=1, mode="nearest")`` at a fraction of the cost."""
+    def axis_lerp(arr, t, axis):
+        n = arr.shape[axis]
+        t = np.clip(t, 0.0, n - 1)
+        i0 = np.minimum(np.floor(t).astype(np.int64), max(n - 2, 0))
+        f = (t - i0).astype(np.float32)
+        i1 = np.minimum(i0 + 1, n - 1)
+        shape = [1] * arr.ndim
+        shape[axis] = -1
+        f = f.reshape(shape)
+        return np.take(arr, i0, axis=axis) * (1.0 - f) + np.take(arr, i1, axis=axis) * f
+
+    return np.ascontiguousarray(axis_lerp(axis_lerp(a, ty, 0), tx, 1), dtype=np.float32)
 
 
 def _reach(rho: float, settings: CompositeSettings) -> int:

@@ -47,7 +47,7 @@ def disparity_jumps(disparity: np.ndarray, threshold: float):
 
 
 def occlusion_region(disparity: np.ndarray, blur_parameter: float, threshold: float,
-                     levels: float = 1.5):
+                     levels: float = 1.5, jumps=None):
     """Pixels on the near side of a disparity jump, within ``A (d_near - d_far)`` of it.
 
     Seeds are grouped by radius into geometric buckets (ratio ``levels``); each bucket is
@@ -56,6 +56,9 @@ def occlusion_region(disparity: np.ndarray, blur_parameter: float, threshold: fl
     Only pixels nearer than the far side of their nearest seed (by more than half the
     threshold) belong to the region.
 
+    ``jumps`` may pass :func:`disparity_jumps` of the same disparity and threshold, if
+    already computed.
+
     Returns ``(region, far_disparity)``: the boolean region and, for every pixel, the
     far-side disparity of its nearest seed (the disparity of what is hidden there;
     ``nan`` when the image has no jump).
@@ -63,7 +66,7 @@ def occlusion_region(disparity: np.ndarray, blur_parameter: float, threshold: fl
     from scipy import ndimage
 
     D = np.asarray(disparity, np.float64)
-    seed, far, _ = disparity_jumps(D, threshold)
+    seed, far, _ = jumps if jumps is not None else disparity_jumps(D, threshold)
     region = np.zeros(D.shape, bool)
     if not seed.any():
         return region, np.full(D.shape, np.nan)
@@ -107,8 +110,8 @@ def push_pull(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
         pv = np.zeros((ph, pw, v.shape[2]))
         pwgt = np.zeros((ph, pw))
         pv[:h, :wd], pwgt[:h, :wd] = cur_v, cur_w
-        sv = pv.reshape(ph // 2, 2, pw // 2, 2, -1).sum(axis=(1, 3))
-        sw = pwgt.reshape(ph // 2, 2, pw // 2, 2).sum(axis=(1, 3))
+        sv = _sum2x2(pv)
+        sw = _sum2x2(pwgt)
         # normalised colour times clamped weight (premultiplied again)
         mean = np.divide(sv, sw[..., None], out=np.zeros_like(sv), where=sw[..., None] > 0)
         cw = np.minimum(sw, 1.0)
@@ -121,6 +124,12 @@ def push_pull(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
         own = np.divide(lv, lw[..., None], out=np.zeros_like(lv), where=lw[..., None] > 0)
         filled = lw[..., None] * own + (1.0 - lw[..., None]) * up
     return filled
+
+
+def _sum2x2(a: np.ndarray) -> np.ndarray:
+    """Sums of 2x2 blocks (even height and width); four strided adds are several times
+    faster than a reshape-and-sum."""
+    return a[0::2, 0::2] + a[1::2, 0::2] + a[0::2, 1::2] + a[1::2, 1::2]
 
 
 def _upsample2(coarse: np.ndarray, shape) -> np.ndarray:
@@ -148,8 +157,9 @@ def fill_hidden(colour: np.ndarray, disparity: np.ndarray, region: np.ndarray,
     so that an HDR highlight near the edge is not smeared over the whole fill: the fill
     guesses ordinary background, not bokeh balls.
 
-    Returns ``(colour (H, W, 3), disparity (H, W))`` filled everywhere (use them inside
-    the region).
+    Returns the colour ``(H, W, 3)``, filled everywhere (use it inside the region).
+    The hidden disparity is not filled: it is that of the far side of the nearest jump
+    (``far_disparity``), since an average of depths would invent surfaces in between.
     """
     D = np.asarray(disparity, np.float64)
     ref = np.where(np.isnan(far_disparity), np.inf, far_disparity)
@@ -157,7 +167,6 @@ def fill_hidden(colour: np.ndarray, disparity: np.ndarray, region: np.ndarray,
     if exclude is not None:
         source &= ~exclude
     c = np.maximum(np.asarray(colour, np.float64), 0.0)
-    stacked = np.concatenate([c / (1.0 + c), D[..., None]], axis=-1)
-    out = push_pull(stacked, source.astype(np.float64))
-    v = np.clip(out[..., :3], 0.0, 1.0 - 1e-9)
-    return v / (1.0 - v), out[..., 3]
+    out = push_pull(c / (1.0 + c), source.astype(np.float64))
+    v = np.clip(out, 0.0, 1.0 - 1e-9)
+    return v / (1.0 - v)

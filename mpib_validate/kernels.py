@@ -220,6 +220,13 @@ def correlate_direct(padded: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     return out
 
 
+def _channel_peaks(a: np.ndarray) -> np.ndarray:
+    """Largest magnitude of each channel of ``(H, W, C)`` (a scalar reduction per
+    channel: numpy reduces a strided channel several times faster than ``axis=(0, 1)``)."""
+    return np.array([max(float(a[..., c].max()), -float(a[..., c].min()))
+                     for c in range(a.shape[-1])])
+
+
 def correlate_fft(padded: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     from scipy import fft
 
@@ -234,7 +241,7 @@ def correlate_fft(padded: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     full = fft.irfft2(spec, s=sh, axes=(0, 1), workers=-1)
     out = np.ascontiguousarray(full[2 * R:H, 2 * R:W], dtype=np.float32)
     # clear rounding noise relative to each channel's largest input magnitude
-    peak = np.abs(padded).max(axis=(0, 1))
+    peak = _channel_peaks(padded)
     out[np.abs(out) < FFT_FLOOR * peak] = 0.0
     np.maximum(out, 0.0, out=out)
     return out

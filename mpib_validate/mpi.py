@@ -280,16 +280,42 @@ class Sheet:
     alpha: np.ndarray  # (h, w)
     disparity: np.ndarray  # (h, w), 1/scene-unit
 
+    def pixels(self, canvas_width: int) -> "Pixels":
+        """The pixels with alpha > 0, as a :class:`Pixels` list on the canvas."""
+        alpha = np.asarray(self.alpha, np.float64)
+        h, w = alpha.shape
+        keep = np.flatnonzero(alpha.ravel() > 0)
+        rows, cols = np.divmod(keep, w)
+        y0, x0 = self.origin
+        return Pixels((rows + y0) * canvas_width + (cols + x0),
+                      np.asarray(self.colour, np.float64).reshape(-1, 3)[keep],
+                      alpha.ravel()[keep],
+                      np.broadcast_to(np.asarray(self.disparity, np.float64),
+                                      alpha.shape).ravel()[keep])
+
+
+@dataclass
+class Pixels:
+    """Sparse content to be cut into planes: flat canvas indices (row * canvas width +
+    column) with straight colour ``(n, 3)``, alpha ``(n,)`` and disparity ``(n,)``; for
+    content that covers a small part of the canvas (fills, edge pixels)."""
+
+    index: np.ndarray
+    colour: np.ndarray
+    alpha: np.ndarray
+    disparity: np.ndarray
+
 
 def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
                        split: str = "linear", snap: float = 0.0) -> MPI:
     """Cut sheets (given far to near) into planes and combine them into an MPI.
 
-    Each pixel of a sheet is shared between its two neighbouring planes by
+    ``sheets`` holds :class:`Sheet` (dense boxes) or :class:`Pixels` (sparse lists).
+    Each pixel is shared between its two neighbouring planes by
     :func:`split_between_planes` (``split="linear"``) or goes wholly to the nearest plane
     (``split="nearest"``); ``snap`` (disparity) is passed on to the split. On each plane
-    the sheets are combined with "over", later (nearer) sheets on top. Memory: one
-    canvas-sized plane at a time.
+    the sheets are combined with "over", later (nearer) sheets on top. Only pixels with
+    alpha > 0 are touched. Memory: one canvas-sized plane at a time.
     """
     planes = np.asarray(planes, np.float64)
     hc, wc = height + 2 * margin, width + 2 * margin
@@ -297,9 +323,11 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
     # sorted by plane, so that each plane touches only its own pixels.
     shares = []
     for sh in sheets:
-        alpha = np.asarray(sh.alpha, np.float64)
-        d = np.asarray(sh.disparity, np.float64)
-        colour = np.asarray(sh.colour, np.float64).reshape(-1, 3)
+        px = sh.pixels(wc) if isinstance(sh, Sheet) else sh
+        alpha = np.asarray(px.alpha, np.float64)
+        d = np.asarray(px.disparity, np.float64)
+        colour = np.asarray(px.colour, np.float64)
+        canvas_index = np.asarray(px.index, np.int64)
         if split == "nearest":
             parts = [(np.abs(d[..., None] - planes).argmin(axis=-1), alpha)]
         elif split == "linear":
@@ -307,19 +335,15 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
             parts = [(idx, a_lo), (np.minimum(idx + 1, len(planes) - 1), a_hi)]
         else:
             raise ValueError(f"split must be 'linear' or 'nearest', got {split!r}")
-        y0, x0 = sh.origin
-        h, w = alpha.shape
-        rows, cols = np.divmod(np.arange(h * w), w)
-        canvas_index = (rows + y0) * wc + (cols + x0)
+        rows_all, cols_all = np.divmod(canvas_index, wc)
         for index, a in parts:
-            a = a.ravel()
             keep = np.flatnonzero(a > 0)
-            order = keep[np.argsort(index.ravel()[keep], kind="stable")]
-            plane_of = index.ravel()[order]
+            order = keep[np.argsort(index[keep], kind="stable")]
+            plane_of = index[order]
             bounds = np.searchsorted(plane_of, np.arange(len(planes) + 1))
             # each plane's bounding box within this share, in one pass per coordinate
-            r = (rows[order] + y0).astype(np.int32)
-            c = (cols[order] + x0).astype(np.int32)
+            r = rows_all[order].astype(np.int32)
+            c = cols_all[order].astype(np.int32)
             boxes = np.zeros((len(planes), 4), np.int64)
             full = np.flatnonzero(bounds[1:] > bounds[:-1])
             if len(full):
@@ -331,7 +355,8 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
             shares.append((canvas_index[order], a[order], colour[order], bounds, boxes))
 
     mpi = MPI(height, width, margin)
-    cmax = [c.max(axis=0) for _, _, c, _, _ in shares if len(c)]
+    # per channel: a scalar reduction of a strided column beats ``max(axis=0)`` several-fold
+    cmax = [[c[:, k].max() for k in range(3)] for _, _, c, _, _ in shares if len(c)]
     mpi.colour_max = (np.max(cmax, axis=0).astype(np.float32) if cmax
                       else np.zeros(3, np.float32))
     layer = np.zeros((hc * wc, 4), np.float32)

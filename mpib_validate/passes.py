@@ -24,13 +24,14 @@ pixel (Blender's Combined and Depth passes), nothing behind the foreground. The 
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from . import fill as _fill
-from .mpi import (SNAP_PX, MPI, Sheet, adaptive_planes, layers_from_sheets, plane_spacing,
+from .mpi import (SNAP_PX, MPI, Pixels, Sheet, adaptive_planes, layers_from_sheets, plane_spacing,
                   uniform_planes)
 
 
@@ -133,15 +134,29 @@ def _unmix(colour, near_colour, far_colour):
 UNMIX_REACH = 3.0
 
 
-def _nearest_value(values: np.ndarray, source: np.ndarray):
-    """Each pixel takes the value of its nearest ``source`` pixel (Euclidean); also
-    returns that distance in pixels (inf where there is no source)."""
-    from scipy import ndimage
-
-    if not source.any():
-        return np.zeros_like(values), np.full(source.shape, np.inf)
-    dist, (iy, ix) = ndimage.distance_transform_edt(~source, return_indices=True)
-    return values[iy, ix], dist
+def _nearest_within(values: np.ndarray, source: np.ndarray, at: np.ndarray, reach: float):
+    """For the flat pixel indices ``at``: the value of the nearest ``source`` pixel
+    (Euclidean, ties in raster order of the offsets) no further than ``reach`` px, and
+    whether there is one. Costs one gather per offset in the disk, on ``at`` only."""
+    H, W = source.shape
+    R = int(math.floor(reach))
+    offsets = sorted(((dy * dy + dx * dx, dy, dx) for dy in range(-R, R + 1)
+                      for dx in range(-R, R + 1) if dy * dy + dx * dx <= reach * reach))
+    y, x = np.divmod(at, W)
+    found = np.full(at.shape, -1, np.int64)
+    for _, dy, dx in offsets:
+        todo = np.flatnonzero(found < 0)
+        if todo.size == 0:
+            break
+        yy, xx = y[todo] + dy, x[todo] + dx
+        inside = (yy >= 0) & (yy < H) & (xx >= 0) & (xx < W)
+        todo, yy, xx = todo[inside], yy[inside], xx[inside]
+        hit = source[yy, xx]
+        found[todo[hit]] = yy[hit] * W + xx[hit]
+    ok = found >= 0
+    out = np.zeros((at.size,) + values.shape[2:], values.dtype)
+    out[ok] = values.reshape((H * W,) + values.shape[2:])[found[ok]]
+    return out, ok
 
 
 def layers_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter: float,
@@ -167,8 +182,9 @@ def layers_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
     thr = settings.jump_px / blur_parameter
     info = PassesInfo(disparity_range=(float(D.min()), float(D.max())))
 
-    region, far_field = _fill.occlusion_region(D, blur_parameter, thr)
-    seed, _, near_next = _fill.disparity_jumps(D, thr)
+    jumps = _fill.disparity_jumps(D, thr)
+    seed, _, near_next = jumps
+    region, far_field = _fill.occlusion_region(D, blur_parameter, thr, jumps=jumps)
     if not settings.fill:
         region[:] = False
     unmix = settings.unmix_edges and settings.fill
@@ -177,52 +193,62 @@ def layers_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
 
     sheets_far, sheets_near = [], []
     visible = ~band
+    flat_rgb = rgb.reshape(-1, 3)
+    flat_d = D.ravel()
     if settings.fill and (region.any() or band.any()):
         # background: filled only from pure pixels on the farther side of the edges
-        bg_rgb, bg_d = _fill.fill_hidden(rgb, D, region, far_field, thr, exclude=band)
-        hidden = region | (band & seed)  # behind the near-side edge pixels too
+        bg_rgb = _fill.fill_hidden(rgb, D, region, far_field, thr, exclude=band)
+        flat_bg = bg_rgb.reshape(-1, 3)
+        hidden = np.flatnonzero(region | (band & seed))  # behind near-side edge pixels too
         # what is hidden lies on the far side of the nearest edge: its disparity is that
         # surface's (a push-pull average of depths would invent surfaces in between)
-        hid_d = np.where(np.isnan(far_field), D, np.minimum(far_field, D))
-        sheets_far.append(Sheet((0, 0), bg_rgb, hidden.astype(np.float64),
-                                np.where(hidden, hid_d, D)))
+        ff = far_field.ravel()[hidden]
+        hid_d = np.where(np.isnan(ff), flat_d[hidden], np.fmin(ff, flat_d[hidden]))
+        sheets_far.append(Pixels(hidden, flat_bg[hidden], np.ones(hidden.size), hid_d))
         if band.any():
+            # everything below is evaluated on the edge pixels only
+            bi = np.flatnonzero(band)
+            on_near = seed.ravel()[bi]
             ref = np.where(np.isnan(far_field), -np.inf, far_field)
-            # nearest pure pixel of each side: local colours, no averaging across texture
-            near_c, near_dist = _nearest_value(rgb, visible & (D > ref + 0.5 * thr))
-            far_own, far_dist = _nearest_value(rgb, visible & ~(D > ref + 0.5 * thr))
-            far_c = np.where(seed[..., None], bg_rgb, far_own)
-            # colours from further than UNMIX_REACH px say nothing about this pixel
-            local = (near_dist <= UNMIX_REACH) & (seed | (far_dist <= UNMIX_REACH))
-            near_d = np.where(farside & ~seed, near_next, D)
-            a, explained = _unmix(rgb, near_c, far_c)
+            near_side = D > ref + 0.5 * thr
+            # nearest pure pixel of each side within UNMIX_REACH: local colours, no
+            # averaging across texture (colours from further say nothing about the pixel)
+            near_c, near_ok = _nearest_within(rgb, visible & near_side, bi, UNMIX_REACH)
+            far_own, far_ok = _nearest_within(rgb, visible & ~near_side, bi, UNMIX_REACH)
+            c = flat_rgb[bi]
+            far_c = np.where(on_near[:, None], flat_bg[bi], far_own)
+            local = near_ok & (on_near | far_ok)
+            near_d = np.where(on_near, flat_d[bi], near_next.ravel()[bi])
+            a, explained = _unmix(c, near_c, far_c)
             # The depth says which side the pixel centre is on: keep a >= 1/4 on the near
             # side and <= 3/4 on the far side; a pixel the two colours do not explain is
             # left whole at its own depth.
-            a = np.where(seed, np.clip(a, 0.25, 1.0), np.clip(a, 0.0, 0.75))
-            a = np.where(explained & local, a, np.where(seed, 1.0, 0.0))
-            a = np.where(band, a, 0.0)
+            a = np.where(on_near, np.clip(a, 0.25, 1.0), np.clip(a, 0.0, 0.75))
+            a = np.where(explained & local, a, np.where(on_near, 1.0, 0.0))
             # the side the depth names takes the rest of the colour, so that the pinhole
             # composite is the pixel's own colour
-            on_near = seed[..., None]
-            a3 = a[..., None]
-            near_c = np.where(on_near, np.maximum((rgb - (1.0 - a3) * far_c) / np.maximum(a3, 1e-6), 0.0),
+            a3 = a[:, None]
+            near_c = np.where(on_near[:, None],
+                              np.maximum((c - (1.0 - a3) * far_c) / np.maximum(a3, 1e-6), 0.0),
                               near_c)
-            far_c = np.where(~on_near, np.maximum((rgb - a3 * near_c) / np.maximum(1.0 - a3, 1e-6), 0.0),
+            far_c = np.where(~on_near[:, None],
+                             np.maximum((c - a3 * near_c) / np.maximum(1.0 - a3, 1e-6), 0.0),
                              far_c)
-            bg_part = band & ~seed  # far-side pixels keep their own (far) depth
-            sheets_far.append(Sheet((0, 0), far_c, bg_part.astype(np.float64), D))
-            sheets_near.append(Sheet((0, 0), near_c, a, near_d))
-            info.edge_fraction = float(band.mean())
+            off = ~on_near  # far-side pixels keep their own (far) depth
+            sheets_far.append(Pixels(bi[off], far_c[off], np.ones(int(off.sum())),
+                                     flat_d[bi[off]]))
+            sheets_near.append(Pixels(bi, near_c, a, near_d))
+            info.edge_fraction = float(bi.size / D.size)
     sheets = sheets_far + [Sheet((0, 0), rgb, visible.astype(np.float64), D)] + sheets_near
 
     step = plane_spacing(blur_parameter, settings.tolerance_px)
     if settings.planes == "uniform":
         planes = uniform_planes(settings.n_uniform, max(float(D.max()), 1e-9) * (1 + 1e-9))
     elif settings.planes == "adaptive":
-        values = [sh.disparity[sh.alpha > 0] for sh in sheets]
-        planes = adaptive_planes(_content_intervals(np.concatenate([v.ravel() for v in values]),
-                                                    step), blur_parameter, settings.tolerance_px)
+        values = [D[visible]] + [sh.disparity[sh.alpha > 0] for sh in sheets
+                                 if isinstance(sh, Pixels)]
+        planes = adaptive_planes(_content_intervals(np.concatenate(values), step),
+                                 blur_parameter, settings.tolerance_px)
     else:
         raise ValueError(f"planes must be 'adaptive' or 'uniform', got {settings.planes!r}")
     mpi = layers_from_sheets(sheets, planes, H, W, 0, snap=SNAP_PX / blur_parameter)

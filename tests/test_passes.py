@@ -101,7 +101,7 @@ def test_fill_error_against_the_true_hidden_background(rendered):
         truth, valid = evaluate.hidden_background(scene)
         thr = 1.0 / cam.blur_parameter
         region, far = fill.occlusion_region(D, cam.blur_parameter, thr)
-        bg, _ = fill.fill_hidden(res.all_in_focus[..., :3], D, region, far, thr)
+        bg = fill.fill_hidden(res.all_in_focus[..., :3], D, region, far, thr)
         m = region & valid
         truth = np.clip(truth, 0, 1)
         err = np.abs(np.clip(bg, 0, 1) - truth)[m].mean()
