@@ -160,7 +160,8 @@ def _nearest_within(values: np.ndarray, source: np.ndarray, at: np.ndarray, reac
 
 
 def layers_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter: float,
-                       settings: PassesSettings = PassesSettings()) -> tuple[MPI, PassesInfo]:
+                       settings: PassesSettings = PassesSettings(),
+                       background=None) -> tuple[MPI, PassesInfo]:
     """Build the MPI of a colour + disparity image (see the module docstring).
 
     Args:
@@ -168,6 +169,10 @@ def layers_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
         disparity: ``(H, W)`` 1/scene-unit, 0 = infinitely far.
         blur_parameter: ``A`` (pixels per unit disparity); it sets the plane spacing and
             how far behind each edge the background is filled (both focus-independent).
+        background: optional ``(colour (H, W, 3), valid (H, W))``: the colour of what
+            lies behind the front surface where it is known (a second render without
+            the foreground, or a card scene's truth); it replaces the fill where
+            ``valid``, and the fill is used elsewhere.
     """
     t0 = time.perf_counter()
     rgb = np.asarray(colour, np.float64)[..., :3]
@@ -198,6 +203,13 @@ def layers_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
     if settings.fill and (region.any() or band.any()):
         # background: filled only from pure pixels on the farther side of the edges
         bg_rgb = _fill.fill_hidden(rgb, D, region, far_field, thr, exclude=band)
+        if background is not None:
+            known_rgb, known = background
+            if np.shape(known_rgb)[:2] != D.shape or np.shape(known) != D.shape:
+                raise PassError(f"the background is {np.shape(known_rgb)[1]}x"
+                                f"{np.shape(known_rgb)[0]} but depth is {W}x{H}")
+            bg_rgb = np.where(np.asarray(known, bool)[..., None],
+                              np.asarray(known_rgb, np.float64)[..., :3], bg_rgb)
         flat_bg = bg_rgb.reshape(-1, 3)
         hidden = np.flatnonzero(region | (band & seed))  # behind near-side edge pixels too
         # what is hidden lies on the far side of the nearest edge: its disparity is that

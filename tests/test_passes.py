@@ -203,3 +203,28 @@ def test_unmixing_edge_pixels_removes_the_fringe(focus):
         out = C.composite(mpi, cam.blur_parameter, cam.focus_disparity)
         errs.append(float(np.sqrt(np.mean((out[..., :3] - res.bokeh[..., :3])[band] ** 2))))
     assert errs[0] * 2 < errs[1], errs
+
+
+def test_a_known_background_replaces_the_fill(rendered):
+    """With the true hidden background given (as a second render without the foreground
+    would give it), the colour + depth path gets closer to the ray tracer at occlusion
+    boundaries than with the fill. Measured on these 8 scenes: +0.01 to +11.0 dB, mean
+    +4.4 dB (the fill is already right where the hidden texture is smooth); we require a
+    mean gain of 3 dB and no scene worse by more than 0.1 dB (both paths are scored
+    against the same reference, so its noise cancels to first order)."""
+    gains = []
+    for (scene, res, D) in rendered.values():
+        cam = scene.camera
+        mask = evaluate.card_scene_mask(scene)
+        ref = np.clip(res.bokeh, 0, 1)
+        scores = []
+        for bg in (None, evaluate.hidden_background(scene)):
+            mpi, _ = layers_from_passes(res.all_in_focus[..., :3], D, cam.blur_parameter,
+                                        background=bg)
+            out = C.composite(mpi, cam.blur_parameter, cam.focus_disparity)
+            scores.append(psnr(ref, np.clip(out, 0, 1), mask))
+        gains.append(scores[1] - scores[0])
+    assert np.mean(gains) >= 3.0 and min(gains) > -0.1, gains
+    with pytest.raises(PassError, match="background is 2x2 but depth is 96x96"):
+        layers_from_passes(res.all_in_focus[..., :3], D, cam.blur_parameter,
+                           background=(np.zeros((2, 2, 3)), np.ones((2, 2), bool)))
