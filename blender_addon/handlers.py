@@ -1,5 +1,7 @@
 """Render handlers: keep the passes of the last render; refocus animation frames."""
 
+import atexit
+import glob
 import os
 import tempfile
 
@@ -56,9 +58,21 @@ def on_render_write(scene, *_):
     refocus_frame_file(scene, scene.render.frame_path(frame=scene.frame_current))
 
 
+def remove_kept_passes() -> None:
+    """Delete this Blender process's kept passes (they are only a cache of the last
+    render; nothing else refers to them once the add-on is off or Blender quits)."""
+    pattern = os.path.join(tempfile.gettempdir(), f"mpib_last_render_{os.getpid()}_*.exr")
+    for path in glob.glob(pattern):
+        try:
+            os.remove(path)
+        except OSError:
+            pass
+
+
 def register():
     bpy.app.handlers.render_complete.append(on_render_complete)
     bpy.app.handlers.render_write.append(on_render_write)
+    atexit.register(remove_kept_passes)
 
 
 def unregister():
@@ -66,3 +80,5 @@ def unregister():
                     (bpy.app.handlers.render_write, on_render_write)):
         while fn in lst:
             lst.remove(fn)
+    atexit.unregister(remove_kept_passes)
+    remove_kept_passes()

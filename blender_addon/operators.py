@@ -47,42 +47,107 @@ def _output_path(scene, source: str) -> str:
     return os.path.join(folder or os.path.dirname(source), f"{stem}_refocused.exr")
 
 
-def refocus_file(context_or_scene, path: str, name: str, frame=None):
-    """Refocus the passes in ``path`` with the scene's camera and panel settings.
-    Returns ``(image, info)``; raises one of :func:`_errors` on bad input."""
+def prepare(context_or_scene, path: str, name: str, frame=None, save=None) -> dict:
+    """Everything the refocus needs from Blender, read on the main thread: the camera
+    calibration (at ``frame``, default the current one), the panel's settings and where
+    to save (``save``: a path, or ``None`` for the panel's choice). Raises one of
+    :func:`_errors`."""
     from mpib_validate.atomic import refuse_overwrite
-    from mpib_validate.camera import blender_camera
     from mpib_validate.passes import PassError
-    from mpib_validate.refocus import focus_from_pixel, load_passes, refocus, write_result
+    from mpib_validate.exr import image_size
 
     scene = getattr(context_or_scene, "scene", context_or_scene)
-    wm = bpy.context.window_manager
     settings = scene.mpib
     if not path or not os.path.exists(path):
         raise PassError(f"'{path}' does not exist")
-    wm.progress_begin(0, 3)
-    try:
-        passes = load_passes(path)
-        wm.progress_update(1)
-        H, W = passes.depth.shape
-        warnings = []
-        cam = blender_camera(**calibrate.camera_settings(scene, settings, W, H, warnings, frame))
-        d_f = cam.focus_disparity
-        if not settings.use_camera_focus and settings.focus_mode == "PIXEL":
-            d_f = focus_from_pixel(passes, settings.focus_pixel[0], settings.focus_pixel[1])
-        result = refocus(passes, cam.blur_parameter, d_f, settings.preset)
-        wm.progress_update(2)
-        image = _to_image(name, result.image)
-        if settings.save_exr:
-            out = _output_path(scene, path)
-            refuse_overwrite(out, [path])
-            write_result(out, result, preview=False)
-            result.info["saved"] = out
-        wm.progress_update(3)
-    finally:
-        wm.progress_end()
-    result.info["warnings"] = warnings
-    return image, result.info
+    W, H = image_size(path)
+    warnings = []
+    cam_kwargs = calibrate.camera_settings(scene, settings, W, H, warnings, frame)
+    pixel = None
+    if not settings.use_camera_focus and settings.focus_mode == "PIXEL":
+        pixel = tuple(settings.focus_pixel)
+    out = save
+    if out is None and settings.save_exr:
+        out = _output_path(scene, path)
+    if out is not None:
+        refuse_overwrite(out, [path])
+    return {"path": path, "name": name, "camera": cam_kwargs, "pixel": pixel,
+            "preset": settings.preset, "save": out, "warnings": warnings}
+
+
+def compute(request: dict, progress=None):
+    """The refocus itself: no Blender calls, so it may run on a worker thread.
+    ``progress(fraction)`` may raise ``mpib_validate.refocus.Cancelled`` to stop; nothing
+    is written then. Returns the :class:`mpib_validate.refocus.RefocusResult`."""
+    from mpib_validate.camera import blender_camera
+    from mpib_validate.refocus import focus_from_pixel, load_passes, refocus, write_result
+
+    report = progress if progress is not None else (lambda fraction: None)
+    passes = load_passes(request["path"])
+    report(0.05)
+    cam = blender_camera(**request["camera"])
+    d_f = cam.focus_disparity
+    if request["pixel"] is not None:
+        d_f = focus_from_pixel(passes, *request["pixel"])
+    result = refocus(passes, cam.blur_parameter, d_f, request["preset"],
+                     progress=lambda f: report(0.05 + 0.9 * f))
+    if request["save"]:
+        write_result(request["save"], result, preview=False)
+        result.info["saved"] = request["save"]
+    report(1.0)
+    result.info["warnings"] = request["warnings"]
+    return result
+
+
+class RefocusJob:
+    """:func:`compute` on a worker thread, so that Blender stays responsive; numpy and
+    the FFT release the GIL for most of the work. :meth:`cancel` stops it at the next
+    progress step (within one layer's blur); nothing is written then."""
+
+    def __init__(self, request: dict):
+        import threading
+
+        self.request = request
+        self.fraction = 0.0
+        self.result = None
+        self.error = None
+        self.cancelled = False
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="mpib-refocus", daemon=True)
+
+    def start(self) -> "RefocusJob":
+        self._thread.start()
+        return self
+
+    def _progress(self, fraction: float) -> None:
+        from mpib_validate.refocus import Cancelled
+
+        if self._stop.is_set():
+            raise Cancelled
+        self.fraction = fraction
+
+    def _run(self) -> None:
+        from mpib_validate.refocus import Cancelled
+
+        try:
+            self.result = compute(self.request, self._progress)
+        except Cancelled:
+            self.cancelled = True
+        except _errors() as exc:
+            self.error = exc
+        except Exception as exc:  # noqa: BLE001 - reported to the artist, not lost
+            self.error = RuntimeError(f"unexpected {type(exc).__name__}: {exc}")
+
+    def cancel(self) -> None:
+        self._stop.set()
+
+    @property
+    def done(self) -> bool:
+        return not self._thread.is_alive()
+
+    def wait(self, timeout=None) -> bool:
+        self._thread.join(timeout)
+        return self.done
 
 
 def _summary(info) -> str:
@@ -92,14 +157,86 @@ def _summary(info) -> str:
 
 
 class _RefocusBase:
+    """Invoked from the interface, runs modally on a worker thread (Esc cancels, progress
+    in the status bar); executed from a script or in background mode, it blocks."""
+
+    _job = None
+    _timer = None
+    _interactive = False
+
+    def _want_modal(self, context) -> bool:
+        return self._interactive and not bpy.app.background and context.window is not None
+
     def run(self, context, path, name):
         settings = context.scene.mpib
         try:
-            image, info = refocus_file(context, path, name)
+            request = prepare(context, path, name)
         except _errors() as exc:
-            settings.last_message = f"error: {exc}"
-            self.report({"ERROR"}, str(exc))
+            return self._fail(settings, exc)
+        if not self._want_modal(context):
+            wm = context.window_manager
+            wm.progress_begin(0, 100)
+            try:
+                result = compute(request, lambda f: wm.progress_update(int(100 * f)))
+            except _errors() as exc:
+                return self._fail(settings, exc)
+            finally:
+                wm.progress_end()
+            return self._show(context, _to_image(name, result.image), result.info)
+        self._job = RefocusJob(request).start()
+        wm = context.window_manager
+        wm.progress_begin(0, 100)
+        self._timer = wm.event_timer_add(0.1, window=context.window)
+        wm.modal_handler_add(self)
+        settings.last_message = "refocusing... (Esc to cancel)"
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        job = self._job
+        if event.type == "ESC" and event.value == "PRESS":
+            job.cancel()
+            return {"RUNNING_MODAL"}
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"}
+        context.window_manager.progress_update(int(100 * job.fraction))
+        if context.workspace is not None:
+            context.workspace.status_text_set(
+                f"MPIB refocus: {100 * job.fraction:.0f} %  (Esc to cancel)")
+        if not job.done:
+            return {"RUNNING_MODAL"}
+        self._end(context)
+        settings = context.scene.mpib
+        if job.cancelled:
+            settings.last_message = "cancelled; nothing was written"
+            self.report({"WARNING"}, "Refocus cancelled; nothing was written")
             return {"CANCELLED"}
+        if job.error is not None:
+            return self._fail(settings, job.error)
+        return self._show(context, _to_image(job.request["name"], job.result.image),
+                          job.result.info)
+
+    def cancel(self, context):  # Blender ends the modal (e.g. the file is closed)
+        if self._job is not None:
+            self._job.cancel()
+            self._job.wait(5.0)
+        self._end(context)
+
+    def _end(self, context):
+        wm = context.window_manager
+        if self._timer is not None:
+            wm.event_timer_remove(self._timer)
+            self._timer = None
+        wm.progress_end()
+        if context.workspace is not None:
+            context.workspace.status_text_set(None)
+
+    def _fail(self, settings, exc):
+        settings.last_message = f"error: {exc}"
+        self.report({"ERROR"}, str(exc))
+        return {"CANCELLED"}
+
+    def _show(self, context, image, info):
+        settings = context.scene.mpib
         settings.last_message = _summary(info)
         for w in info.get("warnings", []):
             self.report({"WARNING"}, w)
@@ -126,6 +263,10 @@ class MPIB_OT_refocus_render(_RefocusBase, bpy.types.Operator):
             return False
         return True
 
+    def invoke(self, context, event):
+        self._interactive = True
+        return self.execute(context)
+
     def execute(self, context):
         return self.run(context, context.scene.mpib.last_passes, "Render Result" + SUFFIX)
 
@@ -138,6 +279,10 @@ class MPIB_OT_refocus_file(_RefocusBase, bpy.types.Operator, ImportHelper):
     bl_options = {"REGISTER"}
     filename_ext = ".exr"
     filter_glob: StringProperty(default="*.exr", options={"HIDDEN"})
+
+    def invoke(self, context, event):
+        self._interactive = True  # the file browser calls execute on this instance
+        return ImportHelper.invoke(self, context, event)
 
     def execute(self, context):
         name = os.path.basename(self.filepath) + SUFFIX
@@ -186,23 +331,13 @@ def refocus_frame_file(scene, frame_path: str) -> None:
                                  "with the Depth pass")
         return
     stem = os.path.splitext(os.path.basename(frame_path))[0]
-    old = settings.save_exr
+    out = os.path.join(os.path.dirname(frame_path), f"{stem}_refocused.exr")
     try:
-        settings.save_exr = False  # the sibling below is this mode's output
-        image, info = refocus_file(scene, frame_path, stem + SUFFIX, frame=scene.frame_current)
-        from mpib_validate.refocus import RefocusResult, write_result
-
-        out = os.path.join(os.path.dirname(frame_path), f"{stem}_refocused.exr")
-        import numpy as np
-
-        rgba = np.array(image.pixels[:], np.float32).reshape(image.size[1], image.size[0], 4)[::-1]
-        write_result(out, RefocusResult(rgba, info), preview=False)
-        bpy.data.images.remove(image)
+        request = prepare(scene, frame_path, stem + SUFFIX, frame=scene.frame_current, save=out)
+        info = compute(request).info
         settings.last_message = f"frame {scene.frame_current}: " + _summary(info)
     except _errors() as exc:
         settings.last_message = f"error: frame {scene.frame_current}: {exc}"
-    finally:
-        settings.save_exr = old
 
 
 classes = (MPIB_OT_refocus_render, MPIB_OT_refocus_file, MPIB_OT_pick_focus)

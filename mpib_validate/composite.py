@@ -203,7 +203,8 @@ def _blur_layer(layer: Layer, rho: float, box, canvas, settings: CompositeSettin
 
 
 def composite(mpi: MPI, blur_parameter: float, focus_disparity: float,
-              settings: CompositeSettings = CompositeSettings(), cell=None) -> np.ndarray:
+              settings: CompositeSettings = CompositeSettings(), cell=None,
+              progress=None) -> np.ndarray:
     """Eq. 1: blur every layer with its disk and composite far to near, normalised.
 
     Args:
@@ -213,6 +214,8 @@ def composite(mpi: MPI, blur_parameter: float, focus_disparity: float,
         settings: kernel, convolution path and fast paths.
         cell: ``(i, j, k)`` to use the kernels of one sub-aperture (see
             :func:`render_subapertures`).
+        progress: optional ``progress(fraction)``, called after each layer; raising
+            from it stops the composite (how a caller cancels).
 
     Returns:
         ``(H, W, 4)`` float32: normalised colour and composited alpha.
@@ -224,7 +227,9 @@ def composite(mpi: MPI, blur_parameter: float, focus_disparity: float,
     acc = np.zeros((H, W, 4), np.float32)  # premultiplied colour + normaliser
     cmax = np.zeros(3, np.float32)
     frame = (m, m + H, m, m + W)
-    for layer in mpi.layers:  # far to near
+    for i, layer in enumerate(mpi.layers):  # far to near
+        if progress is not None:
+            progress(i / max(len(mpi.layers), 1))
         rho = blur_parameter * (layer.disparity - focus_disparity)
         if settings.crop:
             R = _reach(rho, settings)
@@ -253,6 +258,8 @@ def composite(mpi: MPI, blur_parameter: float, focus_disparity: float,
         # acc <- acc (1 - a_blur) + [c a]_blur   (premultiplied colour, and the normaliser)
         region *= 1.0 - blurred[..., 3:4]
         region += blurred
+    if progress is not None:
+        progress(1.0)
     return _normalise(acc, cmax if mpi.colour_max is None else mpi.colour_max)
 
 
@@ -267,21 +274,28 @@ def _normalise(acc: np.ndarray, cmax: np.ndarray) -> np.ndarray:
 
 
 def render_subapertures(mpi: MPI, blur_parameter: float, focus_disparity: float, k: int,
-                        settings: CompositeSettings = CompositeSettings()) -> np.ndarray:
+                        settings: CompositeSettings = CompositeSettings(),
+                        progress=None) -> np.ndarray:
     """The middle setting: ``k x k`` equal-area sub-apertures, each composited with Eq. 1
     using its own partial-disk kernels, averaged. ``k = 1`` is plain Eq. 1.
 
     The average is taken of premultiplied colour and coverage, as the aperture average
-    is; the result is then normalised like Eq. 1's.
+    is; the result is then normalised like Eq. 1's. ``progress`` is as in
+    :func:`composite`, over all ``k * k`` parts.
     """
     if k < 1:
         raise ValueError(f"k must be >= 1, got {k}")
     if k == 1:
-        return composite(mpi, blur_parameter, focus_disparity, settings)
+        return composite(mpi, blur_parameter, focus_disparity, settings, progress=progress)
     total = np.zeros((mpi.height, mpi.width, 4), np.float64)
     for i in range(k):
         for j in range(k):
-            part = composite(mpi, blur_parameter, focus_disparity, settings, cell=(i, j, k))
+            part_progress = None
+            if progress is not None:
+                done = i * k + j
+                part_progress = lambda f, done=done: progress((done + f) / (k * k))  # noqa: E731
+            part = composite(mpi, blur_parameter, focus_disparity, settings, cell=(i, j, k),
+                             progress=part_progress)
             total[..., :3] += part[..., :3] * part[..., 3:4]
             total[..., 3] += part[..., 3]
     total /= k * k

@@ -179,6 +179,19 @@ def _check_file(path: str) -> None:
         raise ExrError(f"cannot read EXR {path!r}: not an OpenEXR file (bad magic number)")
 
 
+def image_size(path: str | os.PathLike[str]) -> tuple[int, int]:
+    """``(width, height)`` of the first part's data window, from the header alone.
+    Raises :class:`ExrError` (message contains the path) like :func:`read_exr`."""
+    path = os.fspath(path)
+    _check_file(path)
+    try:
+        head = OpenEXR.File(path, separate_channels=True, header_only=True)
+        (x0, y0), (x1, y1) = head.parts[0].header["dataWindow"]
+    except Exception as exc:  # RuntimeError/ValueError/KeyError/IndexError from the binding
+        raise ExrError(f"cannot read EXR {path!r}: corrupt or unreadable header ({exc})") from exc
+    return int(x1) - int(x0) + 1, int(y1) - int(y0) + 1
+
+
 def read_exr(path: str | os.PathLike[str]) -> ExrImage:
     """Read every channel of every part of an EXR file.
 

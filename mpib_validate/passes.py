@@ -161,7 +161,7 @@ def _nearest_within(values: np.ndarray, source: np.ndarray, at: np.ndarray, reac
 
 def layers_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter: float,
                        settings: PassesSettings = PassesSettings(),
-                       background=None) -> tuple[MPI, PassesInfo]:
+                       background=None, progress=None) -> tuple[MPI, PassesInfo]:
     """Build the MPI of a colour + disparity image (see the module docstring).
 
     Args:
@@ -173,7 +173,10 @@ def layers_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
             lies behind the front surface where it is known (a second render without
             the foreground, or a card scene's truth); it replaces the fill where
             ``valid``, and the fill is used elsewhere.
+        progress: optional ``progress(fraction)``, called between the steps; raising
+            from it stops the work (how a caller cancels).
     """
+    step_done = progress if progress is not None else (lambda fraction: None)
     t0 = time.perf_counter()
     rgb = np.asarray(colour, np.float64)[..., :3]
     D = np.asarray(disparity, np.float64)
@@ -190,6 +193,7 @@ def layers_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
     jumps = _fill.disparity_jumps(D, thr)
     seed, _, near_next = jumps
     region, far_field = _fill.occlusion_region(D, blur_parameter, thr, jumps=jumps)
+    step_done(0.25)
     if not settings.fill:
         region[:] = False
     unmix = settings.unmix_edges and settings.fill
@@ -211,6 +215,7 @@ def layers_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
             bg_rgb = np.where(np.asarray(known, bool)[..., None],
                               np.asarray(known_rgb, np.float64)[..., :3], bg_rgb)
         flat_bg = bg_rgb.reshape(-1, 3)
+        step_done(0.45)
         hidden = np.flatnonzero(region | (band & seed))  # behind near-side edge pixels too
         # what is hidden lies on the far side of the nearest edge: its disparity is that
         # surface's (a push-pull average of depths would invent surfaces in between)
@@ -252,6 +257,7 @@ def layers_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
             sheets_near.append(Pixels(bi, near_c, a, near_d))
             info.edge_fraction = float(bi.size / D.size)
     sheets = sheets_far + [Sheet((0, 0), rgb, visible.astype(np.float64), D)] + sheets_near
+    step_done(0.6)
 
     step = plane_spacing(blur_parameter, settings.tolerance_px)
     if settings.planes == "uniform":
@@ -264,6 +270,7 @@ def layers_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
     else:
         raise ValueError(f"planes must be 'adaptive' or 'uniform', got {settings.planes!r}")
     mpi = layers_from_sheets(sheets, planes, H, W, 0, snap=SNAP_PX / blur_parameter)
+    step_done(1.0)
     info.planes = len(mpi.layers)
     info.fill_fraction = float(region.mean())
     info.seconds = time.perf_counter() - t0

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .composite import composite, render_subapertures
+from .composite import render_subapertures
 from .exr import ExrError, find_pass, read_exr, rgba_from
 from .passes import DEFAULT_FAR_LIMIT, PassError, depth_to_disparity, layers_from_passes
 from .presets import get_preset
@@ -109,6 +109,10 @@ def blur_parameter_from_lens(fstop: float, focal_mm: float, width_px: int,
     return R * focal_mm / sensor_mm * width_px
 
 
+class Cancelled(Exception):
+    """Raised by a progress callback to stop :func:`refocus` (the artist pressed Esc)."""
+
+
 @dataclass
 class RefocusResult:
     image: np.ndarray  # (H, W, 4): normalised colour + coverage
@@ -116,8 +120,13 @@ class RefocusResult:
 
 
 def refocus(passes: Passes, blur_parameter: float, focus_disparity: float,
-            preset: str = "default", far_limit: float = DEFAULT_FAR_LIMIT) -> RefocusResult:
-    """Build the MPI from the passes and render it with the preset's settings."""
+            preset: str = "default", far_limit: float = DEFAULT_FAR_LIMIT,
+            progress=None) -> RefocusResult:
+    """Build the MPI from the passes and render it with the preset's settings.
+
+    ``progress(fraction)``, if given, is called as the work goes on (layers up to 0.5,
+    then compositing); raising from it stops the work, e.g. :class:`Cancelled`.
+    """
     if not (blur_parameter > 0) or not math.isfinite(blur_parameter):
         raise PassError(f"the blur parameter must be finite and > 0 (a zero aperture has no "
                         f"defocus), got {blur_parameter}")
@@ -126,11 +135,13 @@ def refocus(passes: Passes, blur_parameter: float, focus_disparity: float,
     p = get_preset(preset)
     t0 = time.perf_counter()
     D = depth_to_disparity(passes.depth, far_limit, source=passes.depth_source)
-    mpi, info = layers_from_passes(passes.colour, D, blur_parameter, p.passes)
-    if p.subapertures > 1:
-        img = render_subapertures(mpi, blur_parameter, focus_disparity, p.subapertures, p.composite)
-    else:
-        img = composite(mpi, blur_parameter, focus_disparity, p.composite)
+    first = second = None
+    if progress is not None:
+        first = lambda f: progress(0.5 * f)  # noqa: E731
+        second = lambda f: progress(0.5 + 0.5 * f)  # noqa: E731
+    mpi, info = layers_from_passes(passes.colour, D, blur_parameter, p.passes, progress=first)
+    img = render_subapertures(mpi, blur_parameter, focus_disparity, p.subapertures,
+                              p.composite, progress=second)
     seconds = time.perf_counter() - t0
     radius = blur_parameter * max(abs(float(D.max()) - focus_disparity),
                                   abs(float(D.min()) - focus_disparity))

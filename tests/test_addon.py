@@ -87,7 +87,8 @@ def test_bad_input_gets_a_report(session, case, text):
 
 def test_unregister_leaves_nothing_behind(session):
     out, _ = session
-    assert out["after_disable"] == {"types": [], "scene_property": False, "handlers": []}
+    assert out["after_disable"] == {"types": [], "scene_property": False, "handlers": [],
+                                    "kept_passes": []}
 
 
 def test_beats_the_defocus_node_at_occlusion_boundaries(session):
@@ -121,3 +122,14 @@ def test_animation_frames_are_refocused_with_the_animated_focus(session):
     assert all(v["written"] and v["refocused"] for v in anim.values()), (anim, out["animation_message"])
     assert anim[1]["focus_disparity"] == pytest.approx(1 / 6.0, rel=1e-4)
     assert anim[2]["focus_disparity"] == pytest.approx(1 / 1.5, rel=1e-4)
+
+
+def test_the_modal_worker_gives_the_same_result_and_cancels_cleanly(session):
+    """The interactive operator runs the refocus on a worker thread (Esc cancels it at
+    the next progress step). Cancelled: no result and no file; run through: the very
+    pixels of the blocking operator, and its EXR written."""
+    out, _ = session
+    assert out["job_cancelled"] == {"cancelled": True, "error": "None", "result": False,
+                                    "written": False}
+    assert out["job_done"] == {"cancelled": False, "error": "None", "fraction": 1.0,
+                               "written": True, "same_as_operator": True}

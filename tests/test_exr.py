@@ -15,6 +15,7 @@ from mpib_validate.exr import (
     ExrImage,
     channels_from_rgba,
     find_pass,
+    image_size,
     read_exr,
     rgba_from,
     write_exr,
@@ -448,3 +449,15 @@ def test_half_overflow_becomes_inf(tmp_path):
     got = read_exr(tmp_path / "o.exr").channels["Y"]
     assert got.dtype == np.float16
     assert np.isposinf(got[0, 0]) and np.isneginf(got[0, 1]) and got[0, 2] == 1.0
+
+
+def test_image_size_reads_the_header_only(tmp_path):
+    path = tmp_path / "size.exr"
+    write_exr(path, {"R": np.zeros((3, 5), np.float32)})
+    assert image_size(path) == (5, 3)
+    with pytest.raises(ExrError, match="does not exist"):
+        image_size(tmp_path / "missing.exr")
+    bad = tmp_path / "bad.exr"
+    bad.write_bytes(b"not an exr")
+    with pytest.raises(ExrError, match="bad.exr"):
+        image_size(bad)

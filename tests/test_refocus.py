@@ -182,3 +182,32 @@ def test_baselines_run_on_a_card_scene(rendered, name):
     if name != "rvr":
         ref = np.clip(res.bokeh[..., :3], 0, 1)
         assert psnr(ref, np.clip(out, 0, 1)) > psnr(ref, np.clip(res.all_in_focus[..., :3], 0, 1))
+
+
+@pytest.mark.parametrize("preset", ["default", "best"])
+def test_refocus_reports_progress_and_can_be_cancelled(rendered, preset):
+    """The progress callback rises from 0 to 1 and does not change the result; raising
+    from it stops the work (the add-on's Esc)."""
+    from mpib_validate.refocus import Cancelled, load_passes, refocus
+
+    d, scene, res = rendered
+    passes = load_passes(d / "trace.exr")
+    A, df = scene.camera.blur_parameter, scene.camera.focus_disparity
+    seen = []
+    with_progress = refocus(passes, A, df, preset, progress=seen.append)
+    assert seen[0] < 0.5 and seen[-1] == 1.0 and np.all(np.diff(seen) >= 0), seen
+    # every layer reports (so Esc is answered within one layer's blur), after 4 steps of
+    # building the layers
+    assert len(seen) >= 4 + with_progress.info["planes"]
+    np.testing.assert_array_equal(with_progress.image, refocus(passes, A, df, preset).image)
+
+    calls = []
+
+    def stop_half_way(fraction):
+        calls.append(fraction)
+        if fraction >= 0.5:
+            raise Cancelled
+
+    with pytest.raises(Cancelled):
+        refocus(passes, A, df, preset, progress=stop_half_way)
+    assert calls[-1] >= 0.5 and calls[-1] < 1.0

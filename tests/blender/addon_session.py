@@ -133,6 +133,21 @@ out["message"] = sc.mpib.last_message
 img = bpy.data.images.get("Render Result (refocused)")
 out["image"] = [list(img.size), img.is_float] if img else None
 refocused = np.array(img.pixels[:], np.float32).reshape(48, 64, 4)[::-1, :, :3]
+
+# -- the modal operator's worker: the same result off the main thread; Esc stops it ----------
+ops_mod = sys.modules[out["addon_enabled"][0] + ".operators"]
+job_out = os.path.join(work, "job.exr")
+request = ops_mod.prepare(sc, sc.mpib.last_passes, "job", save=job_out)
+job = ops_mod.RefocusJob(request)
+job.cancel()  # Esc before the first step
+job.start().wait(120)
+out["job_cancelled"] = {"cancelled": job.cancelled, "error": repr(job.error),
+                        "result": job.result is not None, "written": os.path.exists(job_out)}
+job = ops_mod.RefocusJob(request).start()
+job.wait(120)
+out["job_done"] = {"cancelled": job.cancelled, "error": repr(job.error),
+                   "fraction": job.fraction, "written": os.path.exists(job_out),
+                   "same_as_operator": bool(np.array_equal(job.result.image[..., :3], refocused))}
 sc.camera.data.dof.use_dof = True
 sc.cycles.samples = 256
 dof_path = render_to(os.path.join(work, "dof.exr"), sc)
@@ -222,5 +237,7 @@ out["after_disable"] = {
     "scene_property": hasattr(bpy.types.Scene, "mpib"),
     "handlers": [f.__name__ for f in bpy.app.handlers.render_complete + bpy.app.handlers.render_write
                  if f.__module__.startswith("bl_ext")],
+    "kept_passes": [p for p in os.listdir(tempfile.gettempdir())
+                    if p.startswith(f"mpib_last_render_{os.getpid()}_")],
 }
 print("RESULT " + json.dumps(out))
