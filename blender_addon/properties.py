@@ -4,11 +4,15 @@ import bpy
 from bpy.props import (BoolProperty, EnumProperty, FloatProperty, IntVectorProperty,
                        PointerProperty, StringProperty)
 
-PRESET_ITEMS = (
-    ("draft", "Draft", "1 px plane tolerance, large blurs at reduced resolution"),
-    ("default", "Default", "0.5 px plane tolerance, exact kernels"),
-    ("best", "Best", "0.25 px plane tolerance, 2x2 sub-apertures"),
-)
+
+def _preset_items():
+    """The compositor's named presets (one source of truth: mpib_validate.presets)."""
+    from mpib_validate.presets import PRESETS
+
+    return tuple((name, name.title(), p.description) for name, p in PRESETS.items())
+
+
+PRESET_ITEMS = _preset_items()
 
 
 class MPIB_Settings(bpy.types.PropertyGroup):

@@ -170,10 +170,10 @@ def _parse_pixel(text: str) -> tuple[int, int]:
 
 def cmd_refocus(args) -> int:
     from .atomic import refuse_overwrite
-    from .refocus import (blur_parameter_from_lens, focus_from_pixel, load_passes, refocus,
-                          write_result)
+    from .refocus import (blur_parameter_from_lens, focus_from_pixel, load_passes,
+                          read_background, refocus, write_result)
 
-    inputs = [args.input] + ([args.depth] if args.depth else [])
+    inputs = [args.input] + [p for p in (args.depth, args.background) if p]
     refuse_overwrite(args.output, inputs)
     refuse_overwrite(Path(args.output).with_suffix(".png"), inputs)
     passes = load_passes(args.input, args.depth)
@@ -202,7 +202,8 @@ def cmd_refocus(args) -> int:
         d_f = float(cam["focus_disparity"])
     else:
         raise CliError("no focus: give --focus-depth, --focus-disparity or --focus-pixel X,Y")
-    result = refocus(passes, A, d_f, args.preset, args.far_limit)
+    background = read_background(args.background, (H, W)) if args.background else None
+    result = refocus(passes, A, d_f, args.preset, args.far_limit, background=background)
     written = write_result(args.output, result, preview=not args.no_preview)
     i = result.info
     print(f"refocused {W}x{H} ({args.preset}): {i['planes']} planes, largest blur radius "
@@ -244,6 +245,7 @@ def cmd_backends(args) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     from .generate import FAMILIES, HARD_CASES
+    from .presets import PRESETS
 
     p = argparse.ArgumentParser(prog="mpib", description=__doc__.split("\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -301,7 +303,7 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Run a benchmark suite and write a report folder "
                                    "(Markdown + JSON).")
     b.add_argument("--out", default="out/bench", help="report folder (default out/bench)")
-    b.add_argument("--suite", choices=["all", "tracer", "compositor", "refocus", "hardcases", "references", "scaling"], default="all")
+    b.add_argument("--suite", choices=["all", "tracer", "compositor", "refocus", "addon", "hardcases", "references", "scaling"], default="all")
     mode = b.add_mutually_exclusive_group()
     mode.add_argument("--quick", action="store_true",
                       help="small scenes, a few minutes on 2 cores (the default)")
@@ -332,6 +334,9 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("input", help="EXR with colour (and depth, unless --depth)")
     f.add_argument("-o", "--output", required=True, help="output EXR (a PNG is written beside it)")
     f.add_argument("--depth", help="separate EXR holding the depth (Z, Depth.Z, Y or R)")
+    f.add_argument("--background",
+                   help="EXR of the scene rendered without the foreground: used in place of "
+                        "the hidden-background fill where its alpha > 0.5")
     g2 = f.add_mutually_exclusive_group()
     g2.add_argument("--focus-depth", type=float, help="focus distance (scene units)")
     g2.add_argument("--focus-disparity", type=float, help="focus disparity (1/scene-unit)")
@@ -341,7 +346,7 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--focal-mm", type=float, help="focal length in mm (with --fstop)")
     f.add_argument("--sensor-mm", type=float, default=36.0, help="sensor width in mm (default 36)")
     f.add_argument("--scene-unit-m", type=float, default=1.0, help="metres per scene unit (default 1)")
-    f.add_argument("--preset", choices=["draft", "default", "best"], default="default")
+    f.add_argument("--preset", choices=list(PRESETS), default="default")
     f.add_argument("--far-limit", type=float, default=1e9,
                    help="depth at or beyond this is infinitely far (Cycles writes 1e10)")
     f.add_argument("--no-preview", action="store_true")

@@ -119,10 +119,25 @@ class RefocusResult:
     info: dict
 
 
+def read_background(path, shape) -> tuple[np.ndarray, np.ndarray]:
+    """What lies behind the foreground, from a second render without it (e.g. the
+    foreground excluded or held out): ``(colour (H, W, 3), valid (H, W))``, valid where
+    its alpha is above 1/2 (everywhere if it has none). Raises :class:`PassError`
+    naming the file if its size is not ``shape``."""
+    rgba = read_colour(path, all_in_focus=True)
+    if rgba.shape[:2] != tuple(shape):
+        raise PassError(f"sizes differ: the background '{path}' is {rgba.shape[1]}x"
+                        f"{rgba.shape[0]}, the passes are {shape[1]}x{shape[0]}")
+    return rgba[..., :3], rgba[..., 3] > 0.5
+
+
 def refocus(passes: Passes, blur_parameter: float, focus_disparity: float,
             preset: str = "default", far_limit: float = DEFAULT_FAR_LIMIT,
-            progress=None) -> RefocusResult:
+            progress=None, background=None) -> RefocusResult:
     """Build the MPI from the passes and render it with the preset's settings.
+
+    ``background``: optional ``(colour, valid)`` of what lies behind the foreground (see
+    :func:`read_background`); it replaces the hidden-background fill where valid.
 
     ``progress(fraction)``, if given, is called as the work goes on (layers up to 0.5,
     then compositing); raising from it stops the work, e.g. :class:`Cancelled`.
@@ -139,7 +154,8 @@ def refocus(passes: Passes, blur_parameter: float, focus_disparity: float,
     if progress is not None:
         first = lambda f: progress(0.5 * f)  # noqa: E731
         second = lambda f: progress(0.5 + 0.5 * f)  # noqa: E731
-    mpi, info = layers_from_passes(passes.colour, D, blur_parameter, p.passes, progress=first)
+    mpi, info = layers_from_passes(passes.colour, D, blur_parameter, p.passes,
+                                   background=background, progress=first)
     img = render_subapertures(mpi, blur_parameter, focus_disparity, p.subapertures,
                               p.composite, progress=second)
     seconds = time.perf_counter() - t0

@@ -41,3 +41,16 @@ def test_pareto_plot_is_written(rows, tmp_path):
         p = tmp_path / f"{family}.png"
         report.pareto_plot(rows, family, p)
         assert p.stat().st_size > 10_000 and p.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_addon_bench_camera_reproduces_the_blur_parameter_and_focus():
+    """The add-on suite sets a Blender lens so that the calibration gives the refocus
+    suite's A and d_f; the camera model must agree to rounding."""
+    from mpib_validate.bench.addon import _camera_for
+    from mpib_validate.camera import blender_camera
+
+    lens = _camera_for(74.3, 0.2514, 1920)
+    cam = blender_camera(lens["lens_mm"], lens["sensor_mm"], 24.0, "HORIZONTAL", 1920, 1080,
+                         lens["fstop"], lens["focus_distance"])
+    assert math.isclose(cam.blur_parameter, 74.3, rel_tol=1e-12)
+    assert math.isclose(cam.focus_disparity, 0.2514, rel_tol=1e-12)

@@ -211,3 +211,28 @@ def test_refocus_reports_progress_and_can_be_cancelled(rendered, preset):
     with pytest.raises(Cancelled):
         refocus(passes, A, df, preset, progress=stop_half_way)
     assert calls[-1] >= 0.5 and calls[-1] < 1.0
+
+
+def test_refocus_with_a_rendered_background_replaces_the_fill(rendered, tmp_path):
+    """A second render without the foreground (here the card scene's true hidden
+    background, written as an EXR with alpha = where it is known) takes the fill's
+    place: closer to the ray tracer at occlusion boundaries. Measured on this scene:
+    PSNR_ob 34.9 dB with the fill, 45.3 dB with the background; we require a gain of
+    5 dB (half the measured one; the scene and both paths are deterministic)."""
+    from mpib_validate import evaluate
+
+    d, scene, res = rendered
+    truth, valid = evaluate.hidden_background(scene)
+    bg = np.concatenate([truth, valid[..., None].astype(np.float32)], axis=-1)
+    write_exr(tmp_path / "bg.exr", channels_from_rgba(bg))
+    mask = evaluate.card_scene_mask(scene)
+    scores = []
+    for extra in ([], ["--background", tmp_path / "bg.exr"]):
+        r = mpib("refocus", d / "trace.exr", "-o", tmp_path / f"out{len(extra)}.exr", *extra)
+        assert r.returncode == 0, r.stderr
+        out = rgba_from(read_exr(tmp_path / f"out{len(extra)}.exr"))
+        scores.append(psnr(np.clip(res.bokeh, 0, 1), np.clip(out, 0, 1), mask))
+    assert scores[1] > scores[0] + 5.0, scores
+    write_exr(tmp_path / "small.exr", channels_from_rgba(bg[:10, :10]))
+    r = mpib("refocus", d / "trace.exr", "-o", tmp_path / "o.exr", "--background", tmp_path / "small.exr")
+    assert r.returncode == 2 and "small.exr" in r.stderr and "sizes differ" in r.stderr
