@@ -163,6 +163,14 @@ class _RefocusBase:
     _job = None
     _timer = None
     _interactive = False
+    running = 0  # modal refocus jobs in flight (one at a time)
+
+    @classmethod
+    def poll(cls, context):
+        if _RefocusBase.running:
+            cls.poll_message_set("A refocus is running (Esc cancels it)")
+            return False
+        return context.scene is not None
 
     def _want_modal(self, context) -> bool:
         return self._interactive and not bpy.app.background and context.window is not None
@@ -184,6 +192,7 @@ class _RefocusBase:
                 wm.progress_end()
             return self._show(context, _to_image(name, result.image), result.info)
         self._job = RefocusJob(request).start()
+        _RefocusBase.running += 1
         wm = context.window_manager
         wm.progress_begin(0, 100)
         self._timer = wm.event_timer_add(0.1, window=context.window)
@@ -222,6 +231,9 @@ class _RefocusBase:
         self._end(context)
 
     def _end(self, context):
+        if self._job is not None:
+            _RefocusBase.running = max(0, _RefocusBase.running - 1)
+            self._job = None
         wm = context.window_manager
         if self._timer is not None:
             wm.event_timer_remove(self._timer)
@@ -257,6 +269,8 @@ class MPIB_OT_refocus_render(_RefocusBase, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
+        if not super().poll(context):
+            return False
         path = context.scene.mpib.last_passes
         if not path or not os.path.exists(path):
             cls.poll_message_set("Render an image first (with the Depth pass enabled)")
