@@ -187,6 +187,11 @@ def layers_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
         raise PassError(f"the blur parameter must be > 0 (a zero aperture has no defocus), "
                         f"got {blur_parameter}")
     H, W = D.shape
+    if background is not None:
+        known_rgb, known = background
+        if np.shape(known_rgb)[:2] != D.shape or np.shape(known) != D.shape:
+            raise PassError(f"the background is {np.shape(known_rgb)[1]}x"
+                            f"{np.shape(known_rgb)[0]} but depth is {W}x{H}")
     thr = settings.jump_px / blur_parameter
     info = PassesInfo(disparity_range=(float(D.min()), float(D.max())))
 
@@ -208,10 +213,6 @@ def layers_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
         # background: filled only from pure pixels on the farther side of the edges
         bg_rgb = _fill.fill_hidden(rgb, D, region, far_field, thr, exclude=band)
         if background is not None:
-            known_rgb, known = background
-            if np.shape(known_rgb)[:2] != D.shape or np.shape(known) != D.shape:
-                raise PassError(f"the background is {np.shape(known_rgb)[1]}x"
-                                f"{np.shape(known_rgb)[0]} but depth is {W}x{H}")
             bg_rgb = np.where(np.asarray(known, bool)[..., None],
                               np.asarray(known_rgb, np.float64)[..., :3], bg_rgb)
         flat_bg = bg_rgb.reshape(-1, 3)
