@@ -90,14 +90,19 @@ def read_rgb(path):
     return rgba_from(img, _colour_prefix(img))[..., :3]
 
 
-def render_to(path, sc):
-    sc.render.filepath = path
+def multilayer_exr_output(sc):
+    """Render output as float multilayer EXR (Blender 5.0 and 4.2 name it differently)."""
     s = sc.render.image_settings
     if hasattr(s, "media_type"):
         s.media_type = "MULTI_LAYER_IMAGE"
     else:
         s.file_format = "OPEN_EXR_MULTILAYER"
     s.color_depth = "32"
+
+
+def render_to(path, sc):
+    sc.render.filepath = path
+    multilayer_exr_output(sc)
     bpy.ops.render.render(write_still=True)
     return path
 
@@ -166,12 +171,7 @@ cam.dof.keyframe_insert("focus_distance", frame=2)
 sc.frame_start, sc.frame_end = 1, 2
 cam.dof.use_dof = False  # sharp passes; the refocus uses the (animated) DOF settings
 sc.mpib.refocus_animation = True
-s_img = sc.render.image_settings
-if hasattr(s_img, "media_type"):
-    s_img.media_type = "MULTI_LAYER_IMAGE"
-else:
-    s_img.file_format = "OPEN_EXR_MULTILAYER"
-s_img.color_depth = "32"
+multilayer_exr_output(sc)
 sc.render.filepath = os.path.join(work, "anim", "frame_")
 bpy.ops.render.render(animation=True)
 anim = {}
