@@ -200,14 +200,18 @@ def call(op, **kw):
 
 
 calls = {}
-sc = cycles_scene(dof=True, spp=2, depth_pass=False)
-bpy.ops.render.render(write_still=False)
-calls["no_depth_pass"] = call(bpy.ops.mpib.refocus_render)
-reports["no_depth_pass"] = sc.mpib.last_message
-sc = cycles_scene(dof=True, spp=2, empty=True)
-bpy.ops.render.render(write_still=False)
-calls["depth_all_infinite"] = call(bpy.ops.mpib.refocus_render)
-reports["depth_all_infinite"] = sc.mpib.last_message
+
+
+def refocus_bad_render(case, **scene):
+    """Render a 2-spp scene with the given faults and refocus it; keep the reports."""
+    sc = cycles_scene(spp=2, **{"dof": True, **scene})
+    bpy.ops.render.render(write_still=False)
+    calls[case] = call(bpy.ops.mpib.refocus_render)
+    reports[case] = sc.mpib.last_message
+
+
+refocus_bad_render("no_depth_pass", depth_pass=False)
+refocus_bad_render("depth_all_infinite", empty=True)
 from mpib_validate.exr import channels_from_rgba, write_exr  # noqa: E402
 
 nan_path = os.path.join(work, "nan.exr")
@@ -219,14 +223,8 @@ calls["nan"] = call(bpy.ops.mpib.refocus_file, filepath=nan_path)
 reports["nan"] = sc.mpib.last_message
 calls["missing_file"] = call(bpy.ops.mpib.refocus_file, filepath=os.path.join(work, "missing.exr"))
 reports["missing_file"] = sc.mpib.last_message
-sc = cycles_scene(dof=False, spp=2)
-bpy.ops.render.render(write_still=False)
-calls["camera_without_dof"] = call(bpy.ops.mpib.refocus_render)
-reports["camera_without_dof"] = sc.mpib.last_message
-sc = cycles_scene(dof=True, spp=2, ortho=True)
-bpy.ops.render.render(write_still=False)
-calls["orthographic"] = call(bpy.ops.mpib.refocus_render)
-reports["orthographic"] = sc.mpib.last_message
+refocus_bad_render("camera_without_dof", dof=False)
+refocus_bad_render("orthographic", ortho=True)
 out["reports"] = reports
 out["calls"] = calls
 
