@@ -93,7 +93,7 @@ def _padded_region(layer: Layer, canvas: tuple[int, int], box: tuple[int, int, i
     by replication where the layer's box touches that edge (the official padding)."""
     y0, y1, x0, x1 = box
     hc, wc = canvas
-    out = np.zeros((y1 - y0 + 2 * R, x1 - x0 + 2 * R, 4), np.float32)
+    out = np.zeros((y1 - y0 + 2 * R, x1 - x0 + 2 * R, layer.rgba.shape[2]), np.float32)
     ly0, ly1, lx0, lx1 = layer.box
     # where the layer's content sits in `out`
     oy, ox = ly0 - (y0 - R), lx0 - (x0 - R)
@@ -134,7 +134,10 @@ def _correlate(padded: np.ndarray, kernel: np.ndarray, settings: CompositeSettin
         if be.name != "numpy":
             from .blur_drjit import correlate_drjit
 
-            return correlate_drjit(padded, kernel, be.name)
+            # the Dr.Jit kernel takes up to 4 channels: extras go in a second call
+            parts = [correlate_drjit(padded[..., c:c + 4], kernel, be.name)
+                     for c in range(0, padded.shape[2], 4)]
+            return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=2)
         if be.notice and not getattr(_correlate, "_told", False):
             notify(be)
             _correlate._told = True
@@ -224,9 +227,11 @@ def composite(mpi: MPI, blur_parameter: float, focus_disparity: float,
         raise ValueError(f"blur parameter A must be finite and > 0, got {blur_parameter}")
     H, W, m = mpi.height, mpi.width, mpi.margin
     canvas = mpi.canvas_shape
-    acc = np.zeros((H, W, 4), np.float32)  # premultiplied colour + normaliser
-    cmax = np.zeros(3, np.float32)
+    C = mpi.channels
+    acc = np.zeros((H, W, C), np.float32)  # premultiplied colour + normaliser (+ extras)
+    cmax = np.zeros(C - 1, np.float32)
     frame = (m, m + H, m, m + W)
+    group_sum, group_box, group_id = None, None, None  # the additive group being summed
     for i, layer in enumerate(mpi.layers):  # far to near
         if progress is not None:
             progress(i / max(len(mpi.layers), 1))
@@ -248,27 +253,57 @@ def composite(mpi: MPI, blur_parameter: float, focus_disparity: float,
         blurred = _blur_layer(layer, rho, box, canvas, settings, cell)
         np.clip(blurred[..., 3], 0.0, 1.0, out=blurred[..., 3])
         np.maximum(blurred[..., :3], 0.0, out=blurred[..., :3])
+        np.maximum(blurred[..., 4:], 0.0, out=blurred[..., 4:])
         if mpi.colour_max is None:  # colour bound for the safe division
             a = layer.rgba[..., 3:4]
-            straight = np.divide(layer.rgba[..., :3], a, out=np.zeros_like(layer.rgba[..., :3]),
-                                 where=a > 0)
-            cmax = np.maximum(cmax, straight.reshape(-1, 3).max(axis=0))
+            colour = np.delete(layer.rgba, 3, axis=2)
+            straight = np.divide(colour, a, out=np.zeros_like(colour), where=a > 0)
+            cmax = np.maximum(cmax, straight.reshape(-1, C - 1).max(axis=0))
         y0, y1, x0, x1 = box
-        region = acc[y0 - m:y1 - m, x0 - m:x1 - m]
-        # acc <- acc (1 - a_blur) + [c a]_blur   (premultiplied colour, and the normaliser)
-        region *= 1.0 - blurred[..., 3:4]
-        region += blurred
+        if layer.group is None:
+            region = acc[y0 - m:y1 - m, x0 - m:x1 - m]
+            # acc <- acc (1 - a_blur) + [c a]_blur   (premultiplied colour, and the normaliser)
+            region *= 1.0 - blurred[..., 3:4]
+            region += blurred
+            continue
+        # an additive group: sum its blurred shares, then lay the sum over acc
+        if group_box is not None and layer.group != group_id:
+            _over_group(acc, group_sum, group_box, m)
+            group_box = None
+        if group_sum is None:
+            group_sum = np.zeros_like(acc)
+        group_id = layer.group
+        group_sum[y0 - m:y1 - m, x0 - m:x1 - m] += blurred
+        group_box = box if group_box is None else (
+            min(group_box[0], y0), max(group_box[1], y1), min(group_box[2], x0),
+            max(group_box[3], x1))
+    if group_box is not None:
+        _over_group(acc, group_sum, group_box, m)
     if progress is not None:
         progress(1.0)
     return _normalise(acc, cmax if mpi.colour_max is None else mpi.colour_max)
 
 
+def _over_group(acc, group_sum, box, m):
+    """``acc <- acc (1 - a_G) + G`` over ``box`` for the summed group ``G`` (its alpha
+    clipped to 1), then clear ``G`` there."""
+    y0, y1, x0, x1 = box
+    g = group_sum[y0 - m:y1 - m, x0 - m:x1 - m]
+    region = acc[y0 - m:y1 - m, x0 - m:x1 - m]
+    region *= 1.0 - np.minimum(g[..., 3:4], 1.0)
+    region += g
+    g[...] = 0.0
+
+
 def _normalise(acc: np.ndarray, cmax: np.ndarray) -> np.ndarray:
+    """Colour channels (all but channel 3) divided by the normaliser (channel 3) and
+    clamped to ``[0, cmax]``; channel 3 becomes the coverage, clipped to [0, 1]."""
     out = np.zeros_like(acc)
     norm = acc[..., 3:4]
-    np.divide(acc[..., :3], norm, out=out[..., :3], where=norm > 0)
-    np.minimum(out[..., :3], cmax, out=out[..., :3])
-    np.maximum(out[..., :3], 0.0, out=out[..., :3])
+    for sl, cm in ((slice(0, 3), cmax[:3]), (slice(4, None), cmax[3:])):
+        np.divide(acc[..., sl], norm, out=out[..., sl], where=norm > 0)
+        np.minimum(out[..., sl], cm, out=out[..., sl])
+        np.maximum(out[..., sl], 0.0, out=out[..., sl])
     out[..., 3] = np.clip(acc[..., 3], 0.0, 1.0)
     return out
 
@@ -287,7 +322,8 @@ def render_subapertures(mpi: MPI, blur_parameter: float, focus_disparity: float,
         raise ValueError(f"k must be >= 1, got {k}")
     if k == 1:
         return composite(mpi, blur_parameter, focus_disparity, settings, progress=progress)
-    total = np.zeros((mpi.height, mpi.width, 4), np.float64)
+    C = mpi.channels
+    total = np.zeros((mpi.height, mpi.width, C), np.float64)
     for i in range(k):
         for j in range(k):
             part_progress = None
@@ -296,12 +332,13 @@ def render_subapertures(mpi: MPI, blur_parameter: float, focus_disparity: float,
                 part_progress = lambda f, done=done: progress((done + f) / (k * k))  # noqa: E731
             part = composite(mpi, blur_parameter, focus_disparity, settings, cell=(i, j, k),
                              progress=part_progress)
-            total[..., :3] += part[..., :3] * part[..., 3:4]
-            total[..., 3] += part[..., 3]
+            premult = part * part[..., 3:4]  # colour (and extras) times coverage
+            premult[..., 3] = part[..., 3]
+            total += premult
     total /= k * k
-    out = np.zeros((mpi.height, mpi.width, 4), np.float32)
+    out = np.zeros((mpi.height, mpi.width, C), np.float32)
     a = total[..., 3:4]
-    np.divide(total[..., :3], a, out=out[..., :3], where=a > 0)
+    np.divide(total, a, out=out, where=a > 0)
     out[..., 3] = total[..., 3]
     return out
 

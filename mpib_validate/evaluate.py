@@ -25,13 +25,14 @@ def score(reference: np.ndarray, test: np.ndarray, mask: np.ndarray | None = Non
     return metrics.all_metrics(reference[..., :3], test[..., :3], mask, with_flip=with_flip)
 
 
-def hidden_background(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
+def hidden_background(scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """What lies behind the front-most solid card at each pixel centre (pinhole view).
 
-    Returns ``(colour (H, W, 3), valid (H, W))``: the "over" composite of every card
-    strictly behind the front-most card with alpha >= 0.5, normalised by its coverage;
-    ``valid`` where that coverage is positive. This is the truth a hidden-background fill
-    is scored against.
+    Returns ``(colour (H, W, 3), valid (H, W), disparity (H, W))``: the "over" composite
+    of every card strictly behind the front-most card with alpha >= 0.5, normalised by
+    its coverage; ``valid`` where that coverage is positive; the coverage-weighted
+    disparity of those cards (Eq. 16). This is the truth a hidden-background fill is
+    scored against, in the form ``passes.layers_from_passes(background=)`` takes.
     """
     maps = pinhole_maps(scene)
     alpha, disp, rgb = maps["card_alpha"], maps["card_disparity"], maps["card_rgb"]
@@ -39,6 +40,7 @@ def hidden_background(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     front_d = np.where(layer >= 0, maps["disparity"], -np.inf)
     order = np.argsort(-disp, axis=0, kind="stable")  # nearest first, per pixel
     C = np.zeros(layer.shape + (3,), np.float64)
+    Dsum = np.zeros(layer.shape, np.float64)
     T = np.ones(layer.shape, np.float64)
     for rank in range(order.shape[0]):
         k = order[rank]
@@ -48,8 +50,10 @@ def hidden_background(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
         behind = (d < front_d) & (layer >= 0)
         a = np.where(behind, a, 0.0)
         C += (T * a)[..., None] * c
+        Dsum += T * a * d
         T *= 1.0 - a
     cov = 1.0 - T
     valid = cov > 0
     out = np.divide(C, cov[..., None], out=np.zeros_like(C), where=valid[..., None])
-    return out.astype(np.float32), valid
+    disparity = np.divide(Dsum, cov, out=np.zeros_like(Dsum), where=valid)
+    return out.astype(np.float32), valid, disparity

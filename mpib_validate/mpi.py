@@ -28,7 +28,9 @@ class Layer:
 
     Attributes:
         disparity: the plane's disparity (1/scene-unit).
-        rgba: ``(h, w, 4)`` float32, colour premultiplied by alpha (linear radiance).
+        rgba: ``(h, w, C)`` float32: colour premultiplied by alpha (linear radiance),
+            alpha, then any extra channels premultiplied like the colour (``C = 4``
+            unless the builder was given extras).
         y0, x0: top-left of the box in canvas pixels.
     """
 
@@ -36,6 +38,12 @@ class Layer:
     rgba: np.ndarray
     y0: int
     x0: int
+    #: ``None``: the layer occludes every farther one (Eq. 1). An integer: additive
+    #: groups, far to near. Group ``2k`` is content exactly on plane ``k``; group
+    #: ``2k + 1`` the two additive shares of content strictly inside the interval
+    #: ``(d_k, d_k+1)`` (see :func:`split_between_planes`). The layers of one group are
+    #: blurred and *summed*; groups are composited with "over", far to near.
+    group: int | None = None
 
     @property
     def box(self) -> tuple[int, int, int, int]:
@@ -62,6 +70,17 @@ class MPI:
     colour_max: np.ndarray | None = None
 
     @property
+    def grouped(self) -> bool:
+        """True when the layers are additive interval groups (:attr:`Layer.group`)."""
+        return any(l.group is not None for l in self.layers)
+
+    @property
+    def channels(self) -> int:
+        """Channels per layer: premultiplied RGB, alpha, then any extra premultiplied
+        channels (e.g. the film alpha of a transparent render); 4 when empty."""
+        return self.layers[0].rgba.shape[2] if self.layers else 4
+
+    @property
     def canvas_shape(self) -> tuple[int, int]:
         return self.height + 2 * self.margin, self.width + 2 * self.margin
 
@@ -70,9 +89,9 @@ class MPI:
         return np.array([l.disparity for l in self.layers])
 
     def dense(self) -> np.ndarray:
-        """``(N, H_c, W_c, 4)`` canvas-sized layers (for tests and small images)."""
+        """``(N, H_c, W_c, C)`` canvas-sized layers (for tests and small images)."""
         hc, wc = self.canvas_shape
-        out = np.zeros((len(self.layers), hc, wc, 4), np.float32)
+        out = np.zeros((len(self.layers), hc, wc, self.channels), np.float32)
         for i, l in enumerate(self.layers):
             y0, y1, x0, x1 = l.box
             out[i, y0:y1, x0:x1] = l.rgba
@@ -94,10 +113,11 @@ class MPI:
         return mpi
 
     def add(self, disparity: float, rgba: np.ndarray, y0: int, x0: int,
-            box: tuple[int, int, int, int] | None = None) -> None:
+            box: tuple[int, int, int, int] | None = None, group: int | None = None) -> None:
         """Add premultiplied content at canvas position ``(y0, x0)``, cropped to where
         alpha or colour is non-zero (or to ``box`` = (r0, r1, c0, c1) within ``rgba``
-        when the caller knows it); nothing is stored for empty content."""
+        when the caller knows it); nothing is stored for empty content. ``group``: see
+        :attr:`Layer.group`."""
         if not np.isfinite(disparity) or disparity < 0:
             raise ValueError(f"layer disparity must be finite and >= 0, got {disparity}")
         if box is None:
@@ -110,8 +130,8 @@ class MPI:
         else:
             r0, r1, c0, c1 = box
         crop = np.array(rgba[r0:r1, c0:c1], dtype=np.float32, order="C", copy=True)
-        self.layers.append(Layer(float(disparity), crop, y0 + int(r0), x0 + int(c0)))
-        self.layers.sort(key=lambda l: l.disparity)
+        self.layers.append(Layer(float(disparity), crop, y0 + int(r0), x0 + int(c0), group))
+        self.layers.sort(key=lambda l: (-1 if l.group is None else l.group, l.disparity))
 
 
 # --------------------------------------------------------------------------------------
@@ -159,7 +179,7 @@ def adaptive_planes(intervals, blur_parameter: float, tolerance_px: float = 0.25
 
 
 def split_between_planes(d: np.ndarray, alpha: np.ndarray, planes: np.ndarray,
-                         snap: float = 0.0):
+                         snap: float = 0.0, additive: bool = False):
     """Share content of disparity ``d`` and alpha ``alpha`` between its two neighbouring
     planes so that compositing gives back alpha and Eq. 16 gives back ``d``.
 
@@ -175,6 +195,13 @@ def split_between_planes(d: np.ndarray, alpha: np.ndarray, planes: np.ndarray,
     opaque content that lies on a plane up to rounding. Content within ``snap`` (in
     disparity) of a plane therefore goes wholly to that plane.
 
+    ``additive=True`` shares the alpha instead: ``a_hi = w alpha``, ``a_lo = (1 - w)
+    alpha``, so that the two shares *add up* to the content (and Eq. 16 holds for the
+    sum). The compositor then sums the two blurred shares of an interval instead of
+    laying one over the other (:attr:`Layer.group`): the over split's opaque backing,
+    blurred with Eq. 1, counts a small out-of-focus highlight up to twice (once per
+    plane, since a blurred near share hardly occludes the blurred backing).
+
     Returns ``(index_lo, alpha_lo, alpha_hi)``: the far plane's index and both alphas.
     """
     planes = np.asarray(planes, np.float64)
@@ -188,6 +215,8 @@ def split_between_planes(d: np.ndarray, alpha: np.ndarray, planes: np.ndarray,
     if snap > 0:
         w = np.where(d - lo <= snap, 0.0, np.where(hi - d <= snap, 1.0, w))
     a_hi = w * alpha
+    if additive:
+        return idx, alpha - a_hi, a_hi
     denom = 1.0 - a_hi
     # denom = 0 only for opaque content exactly on the near plane: nothing goes behind it
     a_lo = np.where(denom > 0, alpha * (1.0 - w) / np.where(denom > 0, denom, 1.0), 0.0)
@@ -276,7 +305,7 @@ class Sheet:
     over a box of the canvas starting at ``origin`` (row, column)."""
 
     origin: tuple[int, int]
-    colour: np.ndarray  # (h, w, 3) straight, linear radiance
+    colour: np.ndarray  # (h, w, K) straight, linear radiance (K = 3, or 3 + extras)
     alpha: np.ndarray  # (h, w)
     disparity: np.ndarray  # (h, w), 1/scene-unit
 
@@ -287,8 +316,9 @@ class Sheet:
         keep = np.flatnonzero(alpha.ravel() > 0)
         rows, cols = np.divmod(keep, w)
         y0, x0 = self.origin
+        colour = np.asarray(self.colour, np.float64)
         return Pixels((rows + y0) * canvas_width + (cols + x0),
-                      np.asarray(self.colour, np.float64).reshape(-1, 3)[keep],
+                      colour.reshape(-1, colour.shape[-1])[keep],
                       alpha.ravel()[keep],
                       np.broadcast_to(np.asarray(self.disparity, np.float64),
                                       alpha.shape).ravel()[keep])
@@ -297,7 +327,7 @@ class Sheet:
 @dataclass
 class Pixels:
     """Sparse content to be cut into planes: flat canvas indices (row * canvas width +
-    column) with straight colour ``(n, 3)``, alpha ``(n,)`` and disparity ``(n,)``; for
+    column) with straight colour ``(n, K)``, alpha ``(n,)`` and disparity ``(n,)``; for
     content that covers a small part of the canvas (fills, edge pixels)."""
 
     index: np.ndarray
@@ -330,13 +360,26 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
         canvas_index = np.asarray(px.index, np.int64)
         if split == "nearest":
             parts = [(np.abs(d[..., None] - planes).argmin(axis=-1), alpha)]
+            covers = [alpha]
         elif split == "linear":
             idx, a_lo, a_hi = split_between_planes(d, alpha, planes, snap)
             parts = [(idx, a_lo), (np.minimum(idx + 1, len(planes) - 1), a_hi)]
+            covers = [a for _, a in parts]
+        elif split == "additive":
+            idx, a_lo, a_hi = split_between_planes(d, alpha, planes, snap, additive=True)
+            inside = (a_lo > 0) & (a_hi > 0)  # strictly between two planes
+            hi = np.minimum(idx + 1, len(planes) - 1)
+            # roles: 0 on its plane exactly, 1 far share, 2 near share of an interval
+            parts = [(idx, np.where(inside, 0.0, a_lo)), (hi, np.where(inside, 0.0, a_hi)),
+                     (idx, np.where(inside, a_lo, 0.0)), (hi, np.where(inside, a_hi, 0.0))]
+            # a nearer sheet in the same group hides a farther one by its whole alpha
+            # (both shares), not by the share on this plane
+            covers = [alpha] * 4
         else:
-            raise ValueError(f"split must be 'linear' or 'nearest', got {split!r}")
+            raise ValueError(f"split must be 'linear', 'additive' or 'nearest', got {split!r}")
         rows_all, cols_all = np.divmod(canvas_index, wc)
-        for index, a in parts:
+        for role, (index, a), cover in zip((0, 0, 1, 2) if split == "additive" else (0, 1),
+                                           parts, covers):
             keep = np.flatnonzero(a > 0)
             order = keep[np.argsort(index[keep], kind="stable")]
             plane_of = index[order]
@@ -352,31 +395,47 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
                 boxes[full, 1] = np.maximum.reduceat(r, starts) + 1
                 boxes[full, 2] = np.minimum.reduceat(c, starts)
                 boxes[full, 3] = np.maximum.reduceat(c, starts) + 1
-            shares.append((canvas_index[order], a[order], colour[order], bounds, boxes))
+            shares.append((canvas_index[order], a[order], colour[order], bounds, boxes, role,
+                           cover[order]))
 
     mpi = MPI(height, width, margin)
+    K = max((sh[2].shape[1] for sh in shares), default=3)
+    if any(sh[2].shape[1] != K for sh in shares):
+        raise ValueError("all sheets must have the same colour channels")
     # per channel: a scalar reduction of a strided column beats ``max(axis=0)`` several-fold
-    cmax = [[c[:, k].max() for k in range(3)] for _, _, c, _, _ in shares if len(c)]
+    cmax = [[sh[2][:, k].max() for k in range(K)] for sh in shares if len(sh[2])]
     mpi.colour_max = (np.max(cmax, axis=0).astype(np.float32) if cmax
-                      else np.zeros(3, np.float32))
-    layer = np.zeros((hc * wc, 4), np.float32)
+                      else np.zeros(K, np.float32))
+    layer = np.zeros((hc * wc, K + 1), np.float32)
+    # additive: content exactly on plane k is group 2k; the two shares of content
+    # strictly inside the interval (d_k, d_k+1) form group 2k + 1 (the far share on
+    # plane k, the near one on plane k + 1); otherwise a plane is one layer
+    roles = ((1,), (0,), (2,)) if split == "additive" else ((0, 1),)
+    group_of = {0: lambda p: 2 * p, 1: lambda p: 2 * p + 1, 2: lambda p: 2 * p - 1}
     for p, d_p in enumerate(planes):
-        touched, box = [], None
-        for where, a, colour, bounds, boxes in shares:  # far to near: nearer goes "over"
-            s0, s1 = bounds[p], bounds[p + 1]
-            if s0 == s1:
-                continue
-            px, ap = where[s0:s1], a[s0:s1, None]
-            premult = np.concatenate([colour[s0:s1] * ap, ap], axis=1)
-            layer[px] = layer[px] * (1.0 - ap).astype(np.float32) + premult.astype(np.float32)
-            touched.append(px)
-            b = boxes[p]
-            box = tuple(b) if box is None else (min(box[0], b[0]), max(box[1], b[1]),
-                                                min(box[2], b[2]), max(box[3], b[3]))
-        if touched:
-            mpi.add(float(d_p), layer.reshape(hc, wc, 4), 0, 0, box=tuple(int(v) for v in box))
-            for px in touched:
-                layer[px] = 0.0  # clear only what this plane wrote
+        for role_set in roles:
+            touched, box = [], None
+            for where, a, colour, bounds, boxes, role, cover in shares:  # far to near: "over"
+                if role not in role_set:
+                    continue
+                s0, s1 = bounds[p], bounds[p + 1]
+                if s0 == s1:
+                    continue
+                px, ap = where[s0:s1], a[s0:s1, None]
+                c = colour[s0:s1] * ap
+                premult = np.concatenate([c[:, :3], ap, c[:, 3:]], axis=1)
+                hide = (1.0 - cover[s0:s1, None]).astype(np.float32)
+                layer[px] = layer[px] * hide + premult.astype(np.float32)
+                touched.append(px)
+                b = boxes[p]
+                box = tuple(b) if box is None else (min(box[0], b[0]), max(box[1], b[1]),
+                                                    min(box[2], b[2]), max(box[3], b[3]))
+            if touched:
+                group = None if split != "additive" else group_of[role_set[0]](p)
+                mpi.add(float(d_p), layer.reshape(hc, wc, K + 1), 0, 0,
+                        box=tuple(int(v) for v in box), group=group)
+                for px in touched:
+                    layer[px] = 0.0  # clear only what this plane wrote
     return mpi
 
 
@@ -406,7 +465,8 @@ def save_mpi(mpi: MPI, path) -> None:
     arrays = {"meta": np.array([mpi.height, mpi.width, mpi.margin, len(mpi.layers)], np.int64)}
     for i, l in enumerate(mpi.layers):
         arrays[f"rgba{i}"] = l.rgba
-        arrays[f"where{i}"] = np.array([l.disparity, l.y0, l.x0], np.float64)
+        arrays[f"where{i}"] = np.array([l.disparity, l.y0, l.x0,
+                                        -1 if l.group is None else l.group], np.float64)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             np.savez(fh, **arrays)
@@ -418,6 +478,8 @@ def load_mpi(path) -> MPI:
         h, w, margin, n = (int(v) for v in z["meta"])
         mpi = MPI(h, w, margin)
         for i in range(n):
-            d, y0, x0 = z[f"where{i}"]
-            mpi.layers.append(Layer(float(d), z[f"rgba{i}"], int(y0), int(x0)))
+            where = z[f"where{i}"]
+            d, y0, x0 = where[:3]
+            group = int(where[3]) if len(where) > 3 and where[3] >= 0 else None
+            mpi.layers.append(Layer(float(d), z[f"rgba{i}"], int(y0), int(x0), group))
     return mpi

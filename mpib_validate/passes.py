@@ -81,6 +81,9 @@ class PassesSettings:
         unmix_edges: unmix anti-aliased edge pixels (off: each pixel goes whole to its
             own depth, as in the official pipeline). Needs ``fill``: the background
             part of a near-side edge pixel is the fill.
+        split: how a pixel between two planes is shared (:func:`mpi.split_between_planes`):
+            ``linear`` (over, with an opaque backing) or ``additive`` (the shares of an
+            interval summed by the compositor, see :attr:`mpi.Layer.group`).
     """
 
     tolerance_px: float = 0.5
@@ -89,6 +92,7 @@ class PassesSettings:
     jump_px: float = 1.0
     fill: bool = True
     unmix_edges: bool = True
+    split: str = "linear"
 
 
 @dataclass
@@ -159,27 +163,90 @@ def _nearest_within(values: np.ndarray, source: np.ndarray, at: np.ndarray, reac
     return out, ok
 
 
+#: Colours agree (see :func:`known_background_mask`) within this difference of
+#: ``c / (1 + c)`` (0.02 is about 2 % of a mid grey, above render noise of a converged
+#: pass and below the change a shadow or a different surface makes).
+KNOWN_COLOUR_TOL = 0.02
+
+
+def known_background_mask(colour, disparity, far_field, near_next, known_rgb, known,
+                          known_disparity=None) -> np.ndarray:
+    """Where a render without the foreground shows the surface hidden behind it.
+
+    A hidden pixel lies behind the near side of its nearest disparity jump; what is
+    hidden there is the surface on the far side of that jump, at disparity
+    ``far_field``. The known render shows *a* surface at every pixel, but behind a
+    self-occlusion it shows a farther one (the wall behind Suzanne, not her own eye
+    socket). It is used where:
+
+    - with its disparity: the known surface is the far side's, i.e. nearer to
+      ``far_field`` than half the jump: ``|d_known - d_far| < (d - d_far) / 2``;
+    - without: at the nearest far-side pixel of a jump, the known render agrees with
+      the visible colour (in ``c / (1 + c)``, within :data:`KNOWN_COLOUR_TOL`): the
+      far side visible there is the known background's surface.
+
+    Returns a boolean ``(H, W)`` map (also False where ``known`` is False).
+    """
+    from scipy import ndimage
+
+    D = np.asarray(disparity, np.float64)
+    use = np.asarray(known, bool).copy()
+    ff = np.asarray(far_field, np.float64)
+    if np.isnan(ff).all():
+        return use
+    if known_disparity is not None:
+        kd = np.asarray(known_disparity, np.float64)
+        return use & ~np.isnan(ff) & (np.abs(kd - ff) < 0.5 * np.maximum(D - ff, 0.0))
+    k = np.maximum(np.asarray(known_rgb, np.float64)[..., :3], 0.0)
+    c = np.maximum(np.asarray(colour, np.float64)[..., :3], 0.0)
+    kc, cc = k / (1.0 + k), c / (1.0 + c)
+    agree = (np.abs(kc - cc).max(axis=-1) <= KNOWN_COLOUR_TOL) & use
+    # a seed (near side of a jump) is trusted when a far-side 4-neighbour at the jump's
+    # far disparity agrees; each hidden pixel follows its nearest seed, as far_field does
+    ff_safe = np.where(np.isnan(ff), -np.inf, ff)
+    seed_ok = np.zeros(D.shape, bool)
+    seed = np.zeros(D.shape, bool)
+    H, W = D.shape
+    for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+        src = (slice(max(dy, 0), H + min(dy, 0)), slice(max(dx, 0), W + min(dx, 0)))
+        dst = (slice(max(-dy, 0), H + min(-dy, 0)), slice(max(-dx, 0), W + min(-dx, 0)))
+        far_here = D[src] < D[dst] - 0.5 * np.maximum(D[dst] - ff_safe[dst], 0.0)
+        seed[dst] |= far_here & np.isfinite(near_next[src])
+        seed_ok[dst] |= far_here & agree[src]
+    if not seed.any():
+        return np.zeros(D.shape, bool)
+    _, (iy, ix) = ndimage.distance_transform_edt(~seed, return_indices=True)
+    return use & seed_ok[iy, ix]
+
+
 def layers_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter: float,
                        settings: PassesSettings = PassesSettings(),
                        background=None, progress=None) -> tuple[MPI, PassesInfo]:
     """Build the MPI of a colour + disparity image (see the module docstring).
 
     Args:
-        colour: ``(H, W, 3)`` linear radiance (all in focus).
+        colour: ``(H, W, 3)`` linear radiance (all in focus), or ``(H, W, 3 + E)`` with
+            extra channels that travel with the colour (premultiplied like it; e.g. the
+            film alpha of a transparent render as a fourth channel).
         disparity: ``(H, W)`` 1/scene-unit, 0 = infinitely far.
         blur_parameter: ``A`` (pixels per unit disparity); it sets the plane spacing and
             how far behind each edge the background is filled (both focus-independent).
-        background: optional ``(colour (H, W, 3), valid (H, W))``: the colour of what
-            lies behind the front surface where it is known (a second render without
-            the foreground, or a card scene's truth); it replaces the fill where
-            ``valid``, and the fill is used elsewhere.
+        background: optional ``(colour (H, W, K), valid (H, W)[, disparity (H, W)])``:
+            what a second render without the foreground shows (or a card scene's
+            truth). It replaces the fill only where it shows the surface that is hidden
+            there (see :func:`known_background_mask`): behind a self-occlusion (a brow
+            over an eye socket) the hidden surface is the object's own, which that render
+            does not show, and the fill is used.
         progress: optional ``progress(fraction)``, called between the steps; raising
             from it stops the work (how a caller cancels).
     """
     step_done = progress if progress is not None else (lambda fraction: None)
     t0 = time.perf_counter()
-    rgb = np.asarray(colour, np.float64)[..., :3]
+    rgb = np.asarray(colour, np.float64)
     D = np.asarray(disparity, np.float64)
+    if rgb.ndim != 3 or rgb.shape[2] < 3:
+        raise PassError(f"colour must be (H, W, 3) or (H, W, 3 + extras), got {rgb.shape}")
+    K = rgb.shape[2]
     if rgb.shape[:2] != D.shape:
         raise PassError(f"colour is {rgb.shape[1]}x{rgb.shape[0]} but depth is "
                         f"{D.shape[1]}x{D.shape[0]}")
@@ -188,10 +255,16 @@ def layers_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
                         f"got {blur_parameter}")
     H, W = D.shape
     if background is not None:
-        known_rgb, known = background
-        if np.shape(known_rgb)[:2] != D.shape or np.shape(known) != D.shape:
+        known_rgb, known, known_d = (tuple(background) + (None,))[:3]
+        shapes = [np.shape(known_rgb)[:2], np.shape(known)]
+        if known_d is not None:
+            shapes.append(np.shape(known_d))
+        if any(tuple(sh) != D.shape for sh in shapes):
             raise PassError(f"the background is {np.shape(known_rgb)[1]}x"
                             f"{np.shape(known_rgb)[0]} but depth is {W}x{H}")
+        if np.shape(known_rgb)[2] < K:
+            raise PassError(f"the background has {np.shape(known_rgb)[2]} colour channels, "
+                            f"the passes {K}")
     thr = settings.jump_px / blur_parameter
     info = PassesInfo(disparity_range=(float(D.min()), float(D.max())))
 
@@ -207,15 +280,18 @@ def layers_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
 
     sheets_far, sheets_near = [], []
     visible = ~band
-    flat_rgb = rgb.reshape(-1, 3)
+    flat_rgb = rgb.reshape(-1, K)
     flat_d = D.ravel()
     if settings.fill and (region.any() or band.any()):
         # background: filled only from pure pixels on the farther side of the edges
         bg_rgb = _fill.fill_hidden(rgb, D, region, far_field, thr, exclude=band)
         if background is not None:
-            bg_rgb = np.where(np.asarray(known, bool)[..., None],
-                              np.asarray(known_rgb, np.float64)[..., :3], bg_rgb)
-        flat_bg = bg_rgb.reshape(-1, 3)
+            use = known_background_mask(rgb, D, far_field, near_next, known_rgb, known,
+                                        known_d)
+            info.extra["background_used"] = float(use[region].mean()) if region.any() else 0.0
+            bg_rgb = np.where(use[..., None], np.asarray(known_rgb, np.float64)[..., :K],
+                              bg_rgb)
+        flat_bg = bg_rgb.reshape(-1, K)
         step_done(0.45)
         hidden = np.flatnonzero(region | (band & seed))  # behind near-side edge pixels too
         # what is hidden lies on the far side of the nearest edge: its disparity is that
@@ -270,7 +346,8 @@ def layers_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
                                  blur_parameter, settings.tolerance_px)
     else:
         raise ValueError(f"planes must be 'adaptive' or 'uniform', got {settings.planes!r}")
-    mpi = layers_from_sheets(sheets, planes, H, W, 0, snap=SNAP_PX / blur_parameter)
+    mpi = layers_from_sheets(sheets, planes, H, W, 0, split=settings.split,
+                             snap=SNAP_PX / blur_parameter)
     step_done(1.0)
     info.planes = len(mpi.layers)
     info.fill_fraction = float(region.mean())

@@ -31,6 +31,8 @@ class Passes:
     colour_source: str
     depth_source: str
     camera: dict = field(default_factory=dict)  # from an mpib render's header, if any
+    #: ``(H, W)`` film alpha (coverage) of the colour, premultiplied into it; None = opaque
+    alpha: np.ndarray | None = None
 
 
 def _colour_prefix(img, all_in_focus: bool = True) -> str:
@@ -73,7 +75,8 @@ def load_passes(path, depth_path=None) -> Passes:
     for a missing depth pass or mismatched sizes."""
     img = read_exr(path)
     prefix = _colour_prefix(img)
-    colour = rgba_from(img, prefix)[..., :3]
+    rgba = rgba_from(img, prefix)
+    colour = rgba[..., :3]
     camera = {}
     if "mpib" in img.header:
         try:
@@ -94,7 +97,8 @@ def load_passes(path, depth_path=None) -> Passes:
     if depth.shape != colour.shape[:2]:
         raise PassError(f"sizes differ: colour in '{path}' is {colour.shape[1]}x{colour.shape[0]}, "
                         f"depth in '{dsrc}' is {depth.shape[1]}x{depth.shape[0]}")
-    return Passes(colour.astype(np.float32), depth, f"{path}:{prefix or 'RGB'}", dsrc, camera)
+    return Passes(colour.astype(np.float32), depth, f"{path}:{prefix or 'RGB'}", dsrc, camera,
+                  rgba[..., 3].astype(np.float32))
 
 
 def blur_parameter_from_lens(fstop: float, focal_mm: float, width_px: int,
@@ -115,20 +119,35 @@ class Cancelled(Exception):
 
 @dataclass
 class RefocusResult:
-    image: np.ndarray  # (H, W, 4): normalised colour + coverage
+    """``image``: ``(H, W, 4)`` float32, straight linear colour and alpha (the input's
+    film alpha, refocused; 1 everywhere for an opaque input); the EXR holds
+    ``colour * alpha`` (premultiplied), as Blender writes renders."""
+
+    image: np.ndarray
     info: dict
 
 
-def read_background(path, shape) -> tuple[np.ndarray, np.ndarray]:
+def read_background(path, shape, far_limit: float = DEFAULT_FAR_LIMIT):
     """What lies behind the foreground, from a second render without it (e.g. the
-    foreground excluded or held out): ``(colour (H, W, 3), valid (H, W))``, valid where
-    its alpha is above 1/2 (everywhere if it has none). Raises :class:`PassError`
-    naming the file if its size is not ``shape``."""
-    rgba = read_colour(path, all_in_focus=True)
+    foreground excluded or held out): ``(colour (H, W, 4) premultiplied RGB + alpha,
+    valid (H, W), disparity (H, W) or None)``, valid where its alpha is above 1/2
+    (everywhere if it has none); the disparity from its Depth pass if it has one (it
+    tells :func:`passes.known_background_mask` which hidden pixels it shows). Raises
+    :class:`PassError` naming the file if its size is not ``shape``."""
+    img = read_exr(path)
+    rgba = rgba_from(img, _colour_prefix(img, True))
     if rgba.shape[:2] != tuple(shape):
         raise PassError(f"sizes differ: the background '{path}' is {rgba.shape[1]}x"
                         f"{rgba.shape[0]}, the passes are {shape[1]}x{shape[0]}")
-    return rgba[..., :3], rgba[..., 3] > 0.5
+    disparity = None
+    try:
+        z = img.channels[find_pass(img, "Depth")].astype(np.float64)
+    except ExrError:
+        pass
+    else:
+        z = np.where(np.isfinite(z) & (z > 0), z, np.inf)
+        disparity = np.where(z >= far_limit, 0.0, 1.0 / z)
+    return rgba, rgba[..., 3] > 0.5, disparity
 
 
 def refocus(passes: Passes, blur_parameter: float, focus_disparity: float,
@@ -154,10 +173,26 @@ def refocus(passes: Passes, blur_parameter: float, focus_disparity: float,
     if progress is not None:
         first = lambda f: progress(0.5 * f)  # noqa: E731
         second = lambda f: progress(0.5 + 0.5 * f)  # noqa: E731
-    mpi, info = layers_from_passes(passes.colour, D, blur_parameter, p.passes,
+    # The film alpha travels as a fourth colour channel (premultiplied like the colour),
+    # so the output's alpha is its normalised blur: what the refocused view covers. An
+    # opaque input needs no such channel: the normalised blur of ones is one wherever
+    # the normaliser is positive, which is everywhere for passes (each pixel holds
+    # content, and every kernel has weight at its centre).
+    film = passes.alpha
+    opaque = film is None or bool(np.all(film >= 1.0))
+    colour = passes.colour if opaque else np.concatenate(
+        [passes.colour, np.clip(film, 0.0, 1.0)[..., None]], axis=-1)
+    mpi, info = layers_from_passes(colour, D, blur_parameter, p.passes,
                                    background=background, progress=first)
     img = render_subapertures(mpi, blur_parameter, focus_disparity, p.subapertures,
                               p.composite, progress=second)
+    covered = img[..., 3] > 0
+    alpha = covered.astype(np.float32) if opaque else np.where(covered, img[..., 4], 0.0)
+    out = np.zeros(img.shape[:2] + (4,), np.float32)
+    # straight colour: the normalised (premultiplied) colour over the normalised alpha
+    np.divide(img[..., :3], alpha[..., None], out=out[..., :3], where=alpha[..., None] > 0)
+    out[..., 3] = alpha
+    img = out
     seconds = time.perf_counter() - t0
     radius = blur_parameter * max(abs(float(D.max()) - focus_disparity),
                                   abs(float(D.min()) - focus_disparity))

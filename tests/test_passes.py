@@ -98,7 +98,7 @@ def test_fill_error_against_the_true_hidden_background(rendered):
     under 0.15 and better than that constant fill."""
     for (scene, res, D) in rendered.values():
         cam = scene.camera
-        truth, valid = evaluate.hidden_background(scene)
+        truth, valid, _ = evaluate.hidden_background(scene)
         thr = 1.0 / cam.blur_parameter
         region, far = fill.occlusion_region(D, cam.blur_parameter, thr)
         bg = fill.fill_hidden(res.all_in_focus[..., :3], D, region, far, thr)
