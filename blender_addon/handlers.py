@@ -1,4 +1,5 @@
-"""Render handlers: keep the passes of the last render; refocus animation frames."""
+"""Render handlers: record the camera in the render's metadata; keep the passes of the
+last render; refocus animation frames."""
 
 import atexit
 import glob
@@ -40,6 +41,58 @@ def save_render_passes(scene) -> str:
     return path
 
 
+_notes = {}  # scene name -> (use_stamp_note, stamp_note_text) before the render
+
+
+def stamp_camera(scene) -> str:
+    """Put the scene camera (``mpib_validate.camera_header`` schema) into the render's
+    stamp note, which Blender writes into the header (``Note``) of every EXR it saves of
+    this render, so that ``mpib refocus`` needs no lens options. The artist's note is
+    kept in front of it and the settings are restored after the render
+    (:func:`restore_note`). Returns what was not done and why ("" when done)."""
+    from mpib_validate.camera_header import stamp_note
+
+    from . import calibrate
+
+    r = scene.render
+    if r.use_stamp:  # Burn Into Image would draw the note into the pixels
+        return ("the camera is not recorded in the render's metadata while Burn Into Image "
+                "is on (Output > Metadata)")
+    try:
+        w, h = calibrate.render_size(scene)
+        lens = calibrate.blender_lens(scene, w, h, frame=scene.frame_current)
+    except calibrate.CalibrationError as exc:
+        return f"the camera is not recorded in the render's metadata: {exc}"
+    own = r.stamp_note_text if r.use_stamp_note else ""
+    text = stamp_note(lens, own)
+    if text is None:
+        return ("the camera is not recorded in the render's metadata: the Metadata note is "
+                "too long (Blender keeps 511 bytes)")
+    _notes.setdefault(scene.name, (r.use_stamp_note, r.stamp_note_text))
+    r.use_stamp_note = True
+    r.stamp_note_text = text
+    return ""
+
+
+def restore_note(scene) -> None:
+    """Give the artist back the stamp note settings :func:`stamp_camera` changed."""
+    saved = _notes.pop(scene.name, None)
+    if saved is not None:
+        scene.render.use_stamp_note, scene.render.stamp_note_text = saved
+
+
+@persistent
+def on_render_pre(scene, *_):
+    problem = stamp_camera(scene)
+    if problem:
+        scene.mpib.last_message = "note: " + problem
+
+
+@persistent
+def on_render_post(scene, *_):
+    restore_note(scene)  # the render result keeps its stamp; the scene gets its note back
+
+
 @persistent
 def on_render_complete(scene, *_):
     try:
@@ -69,16 +122,27 @@ def remove_kept_passes() -> None:
             pass
 
 
+def _handlers():
+    h = bpy.app.handlers
+    return ((h.render_pre, on_render_pre), (h.render_post, on_render_post),
+            (h.render_cancel, on_render_post), (h.render_complete, on_render_complete),
+            (h.render_write, on_render_write))
+
+
 def register():
-    bpy.app.handlers.render_complete.append(on_render_complete)
-    bpy.app.handlers.render_write.append(on_render_write)
+    for lst, fn in _handlers():
+        lst.append(fn)
     atexit.register(remove_kept_passes)
 
 
 def unregister():
-    for lst, fn in ((bpy.app.handlers.render_complete, on_render_complete),
-                    (bpy.app.handlers.render_write, on_render_write)):
+    for lst, fn in _handlers():
         while fn in lst:
             lst.remove(fn)
+    for name in list(_notes):
+        scene = bpy.data.scenes.get(name)
+        if scene is not None:
+            restore_note(scene)
+        _notes.pop(name, None)
     atexit.unregister(remove_kept_passes)
     remove_kept_passes()

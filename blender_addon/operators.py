@@ -72,6 +72,7 @@ def prepare(context_or_scene, path: str, name: str, frame=None, save=None) -> di
     if out is not None:
         refuse_overwrite(out, [path])
     return {"path": path, "name": name, "camera": cam_kwargs, "pixel": pixel,
+            "camera_from": calibrate.camera_sources(settings, pixel),
             "preset": settings.preset, "save": out, "warnings": warnings}
 
 
@@ -91,12 +92,25 @@ def compute(request: dict, progress=None):
         d_f = focus_from_pixel(passes, *request["pixel"])
     result = refocus(passes, cam.blur_parameter, d_f, request["preset"],
                      progress=lambda f: report(0.05 + 0.9 * f))
+    result.info["camera"] = saved_camera(cam, d_f, request)
     if request["save"]:
         write_result(request["save"], result, preview=False)
         result.info["saved"] = request["save"]
     report(1.0)
     result.info["warnings"] = request["warnings"]
     return result
+
+
+def saved_camera(cam, d_f: float, request: dict) -> dict:
+    """The ``camera`` member of a saved refocus's ``mpib`` header: the lens fields and
+    the ``A``, ``d_f`` used, and where each came from (camera_header's schema)."""
+    from dataclasses import replace
+
+    from mpib_validate.camera_header import LENS_FIELDS, ResolvedCamera
+
+    lens = {k: request["camera"][k] for k in LENS_FIELDS}
+    used = ResolvedCamera(replace(cam, focus_disparity=d_f), lens, request["camera_from"])
+    return used.header()
 
 
 class RefocusJob:

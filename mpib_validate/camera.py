@@ -143,30 +143,59 @@ class Camera:
         }
 
 
+#: Blender's sensor fits (``Camera.sensor_fit``) and its default sensor (36 x 24 mm, AUTO).
+SENSOR_FITS = ("AUTO", "HORIZONTAL", "VERTICAL")
+DEFAULT_SENSOR_HEIGHT_MM = 24.0
+DEFAULT_SENSOR_FIT = "AUTO"
+
+
+def blender_focal_length_px(lens_mm: float, sensor_width_mm: float, sensor_height_mm: float,
+                            sensor_fit: str, width: int, height: int) -> float:
+    """Focal length in pixels of a Blender camera: ``f_px = lens / sensor * pixels``.
+
+    Blender's rule (``BKE_camera_sensor_fit`` and ``BKE_camera_sensor_size``, which
+    Cycles' viewplane follows): ``HORIZONTAL`` puts the sensor *width* across the image
+    width, ``VERTICAL`` the sensor *height* across the image height, and ``AUTO`` the
+    sensor *width* across the larger image side (the width when ``width >= height``).
+    Square pixels. For a 1080x1920 portrait frame at 50 mm on the default 36 x 24 mm
+    sensor: AUTO 2666.7 px, HORIZONTAL 1500 px, VERTICAL 4000 px.
+    """
+    fit = str(sensor_fit).upper()
+    if fit not in SENSOR_FITS:
+        raise ValueError(f"unknown sensor fit {sensor_fit!r} (one of {', '.join(SENSOR_FITS)})")
+    if fit == "VERTICAL":
+        return lens_mm / sensor_height_mm * height
+    if fit == "HORIZONTAL" or width >= height:
+        return lens_mm / sensor_width_mm * width
+    return lens_mm / sensor_width_mm * height  # AUTO on a portrait frame
+
+
 def blender_camera(lens_mm: float, sensor_width_mm: float, sensor_height_mm: float,
                    sensor_fit: str, width: int, height: int, fstop: float,
                    focus_distance: float, unit_scale: float = 1.0) -> Camera:
-    """The :class:`Camera` that a Blender perspective camera renders with.
+    """The :class:`Camera` that a Blender perspective camera renders with: the one
+    conversion from Blender's lens settings (the add-on, ``mpib refocus`` and the EXR
+    header camera all call it).
 
-    Blender maps the sensor to the image by ``sensor_fit``: ``HORIZONTAL`` uses the
-    sensor width across the image width, ``VERTICAL`` the sensor height across the
-    image height, and ``AUTO`` the sensor *width* across the larger image side. Then
-    ``f_px = lens / sensor * pixels``, the aperture radius is ``R = lens / (2 N)``
-    converted to scene units (``unit_scale`` metres per unit), ``A = R f_px`` and
-    ``d_f = 1 / focus_distance`` (scene units). Square pixels are assumed.
+    ``f_px`` by the sensor fit (:func:`blender_focal_length_px`); the aperture radius
+    ``R = lens / (2 N)`` with the lens converted from mm to scene units
+    (``lens * 1e-3 / unit_scale``); ``A = R f_px`` pixels per unit disparity and
+    ``d_f = 1 / focus_distance`` (planar depth in scene units; ``inf`` gives 0).
+
+    ``unit_scale``: metres per unit of depth *as the lens sees it*. Cycles takes the
+    lens in mm as 1e-3 Blender units whatever the scene's Unit Scale (a Cycles depth of
+    field render does not change with ``unit_settings.scale_length``, checked in the
+    tests), so a Blender render has 1; another value is for depth in other units.
     """
+    for name, value in (("lens", lens_mm), ("sensor width", sensor_width_mm),
+                        ("sensor height", sensor_height_mm), ("unit scale", unit_scale)):
+        if not (value > 0) or math.isinf(value):
+            raise ValueError(f"the {name} must be finite and > 0, got {value}")
     if not (fstop > 0) or math.isinf(fstop):
         raise ValueError(f"f-stop must be finite and > 0, got {fstop}")
     if not (focus_distance > 0):
         raise ValueError(f"focus distance must be > 0, got {focus_distance}")
-    fit = sensor_fit.upper()
-    if fit == "VERTICAL":
-        f_px = lens_mm / sensor_height_mm * height
-    elif fit == "HORIZONTAL":
-        f_px = lens_mm / sensor_width_mm * width
-    elif fit == "AUTO":
-        f_px = lens_mm / sensor_width_mm * max(width, height)
-    else:
-        raise ValueError(f"unknown sensor fit {sensor_fit!r}")
+    f_px = blender_focal_length_px(lens_mm, sensor_width_mm, sensor_height_mm, sensor_fit,
+                                   width, height)
     R = lens_mm * 1e-3 / unit_scale / (2.0 * fstop)
     return Camera(width, height, R * f_px, 1.0 / focus_distance, f_px)

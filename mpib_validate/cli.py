@@ -168,42 +168,39 @@ def _parse_pixel(text: str) -> tuple[int, int]:
     return x, y
 
 
+def _refocus_camera(args, passes):
+    """The camera of ``mpib refocus``: the input header's, each field overridden by the
+    option that gives it (:func:`mpib_validate.camera_header.resolve`)."""
+    from .camera_header import resolve
+    from .refocus import focus_from_pixel
+
+    H, W = passes.depth.shape
+    given = {"lens_mm": args.focal_mm, "sensor_width_mm": args.sensor_mm,
+             "sensor_height_mm": args.sensor_height_mm, "sensor_fit": args.sensor_fit,
+             "fstop": args.fstop, "unit_scale": args.scene_unit_m,
+             "blur_parameter": args.blur_parameter, "focus_distance": args.focus_depth,
+             "focus_disparity": args.focus_disparity}
+    labels = {}
+    if args.focus_pixel is not None:
+        given["focus_disparity"] = focus_from_pixel(passes, *args.focus_pixel, far_limit=args.far_limit)
+        labels["focus_disparity"] = "--focus-pixel {},{}".format(*args.focus_pixel)
+    return resolve(passes.camera, given, W, H, args.input, labels)
+
+
 def cmd_refocus(args) -> int:
     from .atomic import refuse_overwrite
-    from .refocus import (blur_parameter_from_lens, focus_from_pixel, load_passes,
-                          read_background, refocus, write_result)
+    from .refocus import load_passes, read_background, refocus, write_result
 
     inputs = [args.input] + [p for p in (args.depth, args.background) if p]
     refuse_overwrite(args.output, inputs)
     refuse_overwrite(Path(args.output).with_suffix(".png"), inputs)
     passes = load_passes(args.input, args.depth)
     H, W = passes.depth.shape
-    cam = passes.camera
-    if args.blur_parameter is not None:
-        A = args.blur_parameter
-    elif args.fstop is not None or args.focal_mm is not None:
-        if args.fstop is None or args.focal_mm is None:
-            raise CliError("give both --fstop and --focal-mm (and --sensor-mm if not 36)")
-        A = blur_parameter_from_lens(args.fstop, args.focal_mm, W, args.sensor_mm, args.scene_unit_m)
-    elif "blur_parameter" in cam:
-        A = float(cam["blur_parameter"])
-    else:
-        raise CliError(f"no aperture: give --blur-parameter, or --fstop and --focal-mm "
-                       f"('{args.input}' holds no camera settings)")
-    if args.focus_disparity is not None:
-        d_f = args.focus_disparity
-    elif args.focus_depth is not None:
-        if not args.focus_depth > 0:
-            raise CliError(f"--focus-depth must be > 0, got {args.focus_depth}")
-        d_f = 1.0 / args.focus_depth
-    elif args.focus_pixel is not None:
-        d_f = focus_from_pixel(passes, *args.focus_pixel, far_limit=args.far_limit)
-    elif "focus_disparity" in cam:
-        d_f = float(cam["focus_disparity"])
-    else:
-        raise CliError("no focus: give --focus-depth, --focus-disparity or --focus-pixel X,Y")
+    used = _refocus_camera(args, passes)
+    A, d_f = used.camera.blur_parameter, used.camera.focus_disparity
     background = read_background(args.background, (H, W)) if args.background else None
     result = refocus(passes, A, d_f, args.preset, args.far_limit, background=background)
+    result.info["camera"] = used.header()  # which camera fields were used, and from where
     written = write_result(args.output, result, preview=not args.no_preview)
     i = result.info
     print(f"refocused {W}x{H} ({args.preset}): {i['planes']} planes, largest blur radius "
@@ -244,6 +241,7 @@ def cmd_backends(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .camera import SENSOR_FITS
     from .generate import FAMILIES, HARD_CASES
     from .presets import PRESETS
 
@@ -341,11 +339,24 @@ def build_parser() -> argparse.ArgumentParser:
     g2.add_argument("--focus-depth", type=float, help="focus distance (scene units)")
     g2.add_argument("--focus-disparity", type=float, help="focus disparity (1/scene-unit)")
     g2.add_argument("--focus-pixel", type=_parse_pixel, help="focus on pixel X,Y")
-    f.add_argument("--blur-parameter", type=float, help="A, pixels per unit disparity")
-    f.add_argument("--fstop", type=float, help="f-number N (with --focal-mm)")
-    f.add_argument("--focal-mm", type=float, help="focal length in mm (with --fstop)")
-    f.add_argument("--sensor-mm", type=float, default=36.0, help="sensor width in mm (default 36)")
-    f.add_argument("--scene-unit-m", type=float, default=1.0, help="metres per scene unit (default 1)")
+    lens = f.add_argument_group(
+        "camera", "By default focus and aperture come from the input's header (a render made "
+        "with the MPIB extension enabled, or an mpib render). Each option below replaces "
+        "that one field; without a header, give --blur-parameter, or --fstop and --focal-mm.")
+    lens.add_argument("--blur-parameter", type=float,
+                      help="A, pixels per unit disparity (not with the lens options)")
+    lens.add_argument("--fstop", type=float, help="f-number N")
+    lens.add_argument("--focal-mm", type=float, help="focal length in mm")
+    lens.add_argument("--sensor-mm", type=float,
+                      help="sensor width in mm (default: the header's, else 36)")
+    lens.add_argument("--sensor-height-mm", type=float,
+                      help="sensor height in mm, used by VERTICAL fit (default: the header's, else 24)")
+    lens.add_argument("--sensor-fit", type=str.upper, choices=list(SENSOR_FITS),
+                      help="how the sensor maps to the image, as Blender: AUTO puts the sensor "
+                           "width across the larger image side (default: the header's, else AUTO)")
+    lens.add_argument("--scene-unit-m", type=float,
+                      help="metres per depth unit for the lens (default: the header's, else 1; "
+                           "Blender renders need 1 whatever their Unit Scale)")
     f.add_argument("--preset", choices=list(PRESETS), default="default")
     f.add_argument("--far-limit", type=float, default=1e9,
                    help="depth at or beyond this is infinitely far (Cycles writes 1e10)")

@@ -2,8 +2,8 @@
 
 This is what ``mpib refocus`` and the Blender add-on run. Inputs are EXR files: a
 Blender multilayer file (``ViewLayer.Combined.*`` and ``ViewLayer.Depth.Z``), one of
-this project's renders (``AllInFocus.*`` and ``Depth.Z``, with the camera in its
-``mpib`` header attribute), or colour and depth as two files.
+this project's renders (``AllInFocus.*`` and ``Depth.Z``), or colour and depth as two
+files. The camera travels in the header (:mod:`mpib_validate.camera_header`).
 """
 
 from __future__ import annotations
@@ -11,11 +11,12 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from .camera_header import HeaderCamera, read_camera
 from .composite import render_subapertures
 from .exr import ExrError, find_pass, read_exr, rgba_from
 from .passes import DEFAULT_FAR_LIMIT, PassError, depth_to_disparity, layers_from_passes
@@ -30,7 +31,7 @@ class Passes:
     depth: np.ndarray
     colour_source: str
     depth_source: str
-    camera: dict = field(default_factory=dict)  # from an mpib render's header, if any
+    camera: HeaderCamera | None = None  # the camera the input's header carries, if any
     #: ``(H, W)`` film alpha (coverage) of the colour, premultiplied into it; None = opaque
     alpha: np.ndarray | None = None
 
@@ -71,18 +72,15 @@ def _depth_channel(img, path) -> np.ndarray:
 
 
 def load_passes(path, depth_path=None) -> Passes:
-    """Read colour and depth. Raises :class:`PassError`/:class:`ExrError` naming the file
-    for a missing depth pass or mismatched sizes."""
+    """Read colour and depth, and the camera of the colour file's header (see
+    :mod:`mpib_validate.camera_header`). Raises :class:`PassError`/:class:`ExrError`
+    naming the file for a missing depth pass or mismatched sizes, and
+    :class:`~mpib_validate.camera_header.CameraHeaderError` for a malformed camera."""
     img = read_exr(path)
     prefix = _colour_prefix(img)
     rgba = rgba_from(img, prefix)
     colour = rgba[..., :3]
-    camera = {}
-    if "mpib" in img.header:
-        try:
-            camera = json.loads(img.header["mpib"]).get("camera", {})
-        except (TypeError, ValueError):
-            camera = {}
+    camera = read_camera(img.header, path)
     if depth_path is None:
         try:
             depth = img.channels[find_pass(img, "Depth")].astype(np.float64)
@@ -99,18 +97,6 @@ def load_passes(path, depth_path=None) -> Passes:
                         f"depth in '{dsrc}' is {depth.shape[1]}x{depth.shape[0]}")
     return Passes(colour.astype(np.float32), depth, f"{path}:{prefix or 'RGB'}", dsrc, camera,
                   rgba[..., 3].astype(np.float32))
-
-
-def blur_parameter_from_lens(fstop: float, focal_mm: float, width_px: int,
-                             sensor_mm: float = 36.0, scene_unit_m: float = 1.0) -> float:
-    """``A = R f_px`` with ``R = f / (2 N)`` (scene units) and ``f_px = f / sensor * W``
-    (sensor fit horizontal), as Blender's thin lens."""
-    if not (fstop > 0) or math.isinf(fstop):
-        raise PassError(f"the f-stop must be finite and > 0, got {fstop} (no aperture, no defocus)")
-    if not (focal_mm > 0 and sensor_mm > 0):
-        raise PassError("focal length and sensor width must be > 0")
-    R = focal_mm * 1e-3 / scene_unit_m / (2.0 * fstop)
-    return R * focal_mm / sensor_mm * width_px
 
 
 class Cancelled(Exception):

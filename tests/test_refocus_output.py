@@ -29,7 +29,7 @@ def _ramp_passes(h=48, w=64, transparent_sky=False):
     if transparent_sky:
         colour[: h // 6] = 0.0
         alpha[: h // 6] = 0.0
-    return Passes(colour, depth.astype(np.float64), "ramp", "ramp", {}, alpha)
+    return Passes(colour, depth.astype(np.float64), "ramp", "ramp", None, alpha)
 
 
 def test_an_opaque_input_gives_an_opaque_correctly_exposed_output(tmp_path):
