@@ -223,6 +223,14 @@ def composite(mpi: MPI, blur_parameter: float, focus_disparity: float,
     Returns:
         ``(H, W, 4)`` float32: normalised colour and composited alpha.
     """
+    return _normalise(*_accumulate(mpi, blur_parameter, focus_disparity, settings, cell,
+                                   progress))
+
+
+def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
+                settings: CompositeSettings, cell, progress):
+    """Eq. 1 before the division: ``(acc, cmax)``, the composited premultiplied colour
+    with the normaliser in channel 3 (``(H, W, C)`` float32), and the colour bound."""
     if not blur_parameter > 0 or not math.isfinite(blur_parameter):
         raise ValueError(f"blur parameter A must be finite and > 0, got {blur_parameter}")
     H, W, m = mpi.height, mpi.width, mpi.margin
@@ -281,7 +289,7 @@ def composite(mpi: MPI, blur_parameter: float, focus_disparity: float,
         _over_group(acc, group_sum, group_box, m)
     if progress is not None:
         progress(1.0)
-    return _normalise(acc, cmax if mpi.colour_max is None else mpi.colour_max)
+    return acc, (cmax if mpi.colour_max is None else mpi.colour_max)
 
 
 def _over_group(acc, group_sum, box, m):
@@ -314,33 +322,27 @@ def render_subapertures(mpi: MPI, blur_parameter: float, focus_disparity: float,
     """The middle setting: ``k x k`` equal-area sub-apertures, each composited with Eq. 1
     using its own partial-disk kernels, averaged. ``k = 1`` is plain Eq. 1.
 
-    The average is taken of premultiplied colour and coverage, as the aperture average
-    is; the result is then normalised like Eq. 1's. ``progress`` is as in
+    The average is taken of the parts' premultiplied colour and normaliser before Eq.
+    1's division, as the aperture average is; then normalised once. ``progress`` is as in
     :func:`composite`, over all ``k * k`` parts.
     """
     if k < 1:
         raise ValueError(f"k must be >= 1, got {k}")
     if k == 1:
         return composite(mpi, blur_parameter, focus_disparity, settings, progress=progress)
-    C = mpi.channels
-    total = np.zeros((mpi.height, mpi.width, C), np.float64)
+    if not blur_parameter > 0 or not math.isfinite(blur_parameter):
+        raise ValueError(f"blur parameter A must be finite and > 0, got {blur_parameter}")
+    total = np.zeros((mpi.height, mpi.width, mpi.channels), np.float64)
     for i in range(k):
         for j in range(k):
             part_progress = None
             if progress is not None:
                 done = i * k + j
                 part_progress = lambda f, done=done: progress((done + f) / (k * k))  # noqa: E731
-            part = composite(mpi, blur_parameter, focus_disparity, settings, cell=(i, j, k),
-                             progress=part_progress)
-            premult = part * part[..., 3:4]  # colour (and extras) times coverage
-            premult[..., 3] = part[..., 3]
-            total += premult
-    total /= k * k
-    out = np.zeros((mpi.height, mpi.width, C), np.float32)
-    a = total[..., 3:4]
-    np.divide(total, a, out=out, where=a > 0)
-    out[..., 3] = total[..., 3]
-    return out
+            acc, cmax = _accumulate(mpi, blur_parameter, focus_disparity, settings, (i, j, k),
+                                    part_progress)
+            total += acc  # premultiplied colour and normaliser: the aperture average
+    return _normalise((total / (k * k)).astype(np.float32), cmax)
 
 
 def render_exact(mpi: MPI, camera, samples=None, backend: str = "auto") -> np.ndarray:

@@ -15,7 +15,9 @@ pixel (Blender's Combined and Depth passes), nothing behind the foreground. The 
    background an opaque layer behind it; the side the depth names takes the rest of the
    colour, ``(c - (1 - a) c_f) / a`` or ``(c - a c_n) / (1 - a)``, so that the pinhole
    composite is the pixel exactly. No fringe of the wrong colour is then blurred with
-   the other layer.
+   the other layer. A structure one or two pixels wide (a wire, a blade of grass) has no
+   pure pixel; the far-side pixels around it take its nearest own (mixed) pixel as
+   ``c_n``, so that its colour leaves them with it instead of staying sharp.
 4. The sheets (hidden background, unmixed background parts, visible pixels, unmixed
    foreground parts, far to near) are cut into planes with
    :func:`mpib_validate.mpi.layers_from_sheets`: each pixel is shared between its two
@@ -308,6 +310,12 @@ def layers_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
             # nearest pure pixel of each side within UNMIX_REACH: local colours, no
             # averaging across texture (colours from further say nothing about the pixel)
             near_c, near_ok = _nearest_within(rgb, visible & near_side, bi, UNMIX_REACH)
+            # a structure one or two pixels wide has no pure pixel: its own (mixed) pixels
+            # are the best estimate of its colour for the far-side pixels around it
+            thin_c, thin_ok = _nearest_within(rgb, seed, bi, UNMIX_REACH)
+            use_thin = ~near_ok & thin_ok & ~on_near
+            near_c = np.where(use_thin[:, None], thin_c, near_c)
+            near_ok = near_ok | use_thin
             far_own, far_ok = _nearest_within(rgb, visible & ~near_side, bi, UNMIX_REACH)
             c = flat_rgb[bi]
             far_c = np.where(on_near[:, None], flat_bg[bi], far_own)

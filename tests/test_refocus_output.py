@@ -179,3 +179,40 @@ def test_additive_groups_change_nothing_for_content_on_planes():
     add, _ = layers_from_passes(rgb, D, A, PassesSettings(split="additive"))
     assert add.grouped and not lin.grouped
     np.testing.assert_allclose(C.composite(add, A, df), C.composite(lin, A, df), atol=1e-6)
+
+
+def _wire(H=48, W=48, width=0.8, d_wall=0.2, d_wire=1.0, wall=0.8, wire=0.05):
+    """A slanted dark wire 0.8 px wide before an in-focus wall, rendered as a renderer
+    does: box-filtered colour (coverage mix) and the depth of the surface at each pixel
+    centre; returns the passes and the wire's coverage."""
+    ys = np.arange(H) + 0.5
+    x0 = 20.0 + 6.0 * ys / H
+    j = np.arange(W)[None, :]
+    lo = np.maximum(j, x0[:, None] - width / 2)
+    hi = np.minimum(j + 1, x0[:, None] + width / 2)
+    cov = np.clip(hi - lo, 0.0, 1.0)
+    centre = np.abs(j + 0.5 - x0[:, None]) < width / 2
+    colour = (cov * wire + (1 - cov) * wall)[..., None] * np.ones(3)
+    depth = np.where(centre, 1 / d_wire, 1 / d_wall)
+    return Passes(colour.astype(np.float32), depth, "wire", "wire", None, None), cov
+
+
+def test_a_thin_wire_blurs_away_instead_of_leaving_sharp_remnants():
+    """Focus on the wall, the wire 16 px out of focus: the truth is the wall with the
+    wire's coverage blurred over it. Pixels the wire crosses without covering their
+    centre carry the wall's depth and part of the wire's colour; they used to stay sharp
+    (dark remnants: worst pixel 0.33 below the truth, measured). Unmixed with the
+    wire's own mixed pixels as its colour they go with it: measured 0.24 worst (the rest
+    is rows where no pixel centre is covered at all) and mean error 0.008 against 0.013.
+    Required: worst below 0.28 and mean below 0.011, between the two."""
+    from scipy import signal
+    from mpib_validate.kernels import disk_kernel
+
+    A, df = 20.0, 0.2
+    passes, cov = _wire()
+    K = disk_kernel(A * (1.0 - df))
+    blurred = signal.fftconvolve(np.pad(cov, 40, mode="edge"), K, mode="same")[40:-40, 40:-40]
+    truth = (1 - blurred) * 0.8 + blurred * 0.05
+    out = refocus(passes, A, df).image[..., 0]
+    err = np.abs(out - truth)[8:-8, 8:-8]
+    assert err.max() < 0.28 and err.mean() < 0.011, (err.max(), err.mean())
