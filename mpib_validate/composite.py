@@ -63,6 +63,12 @@ class CompositeSettings:
         backend: ``numpy`` (scipy direct/FFT), or ``llvm`` / ``cuda`` for the Dr.Jit
             gather-based blur (:mod:`mpib_validate.blur_drjit`; ``conv`` is then
             ignored). A Dr.Jit backend that cannot run falls back to numpy with a notice.
+        slab_px: for an MPI of additive groups (:attr:`mpi.Layer.group`): consecutive
+            groups whose blur radii span at most this many pixels are summed as one
+            slab before "over" (``None``: each group alone). Fewer seams where one
+            continuous surface crosses groups; two surfaces closer than this are then
+            side by side rather than one in front (an error within a band of that
+            many pixels).
     """
 
     kernel: str = "canonical"
@@ -70,6 +76,7 @@ class CompositeSettings:
     crop: bool = True
     reduce_above: float | None = None
     backend: str = "numpy"
+    slab_px: float | None = None
 
 
 PLAIN = CompositeSettings(kernel="canonical", conv="direct", crop=False, reduce_above=None)
@@ -239,7 +246,8 @@ def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
     acc = np.zeros((H, W, C), np.float32)  # premultiplied colour + normaliser (+ extras)
     cmax = np.zeros(C - 1, np.float32)
     frame = (m, m + H, m, m + W)
-    group_sum, group_box, group_id = None, None, None  # the additive group being summed
+    group_sum, group_box, group_id = None, None, None  # the additive slab being summed
+    slab_of = _slabs(mpi.layers, (settings.slab_px or 0.0) / blur_parameter)
     for i, layer in enumerate(mpi.layers):  # far to near
         if progress is not None:
             progress(i / max(len(mpi.layers), 1))
@@ -275,12 +283,12 @@ def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
             region += blurred
             continue
         # an additive group: sum its blurred shares, then lay the sum over acc
-        if group_box is not None and layer.group != group_id:
+        if group_box is not None and slab_of[i] != group_id:
             _over_group(acc, group_sum, group_box, m)
             group_box = None
         if group_sum is None:
             group_sum = np.zeros_like(acc)
-        group_id = layer.group
+        group_id = slab_of[i]
         group_sum[y0 - m:y1 - m, x0 - m:x1 - m] += blurred
         group_box = box if group_box is None else (
             min(group_box[0], y0), max(group_box[1], y1), min(group_box[2], x0),
@@ -290,6 +298,27 @@ def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
     if progress is not None:
         progress(1.0)
     return acc, (cmax if mpi.colour_max is None else mpi.colour_max)
+
+
+def _slabs(layers, span: float) -> list:
+    """Slab id of each layer: consecutive additive groups merged while the slab's
+    disparity span stays within ``span`` (0: one slab per group); None for ungrouped
+    layers."""
+    lo, hi = {}, {}
+    for l in layers:
+        if l.group is not None:
+            lo[l.group] = min(lo.get(l.group, math.inf), l.disparity)
+            hi[l.group] = max(hi.get(l.group, -math.inf), l.disparity)
+    out, slab, start, last = [], -1, 0.0, None
+    for l in layers:
+        if l.group is None:
+            out.append(None)
+            continue
+        if l.group != last and (last is None or span <= 0 or hi[l.group] - start > span):
+            slab, start = slab + 1, lo[l.group]
+        last = l.group
+        out.append(slab)
+    return out
 
 
 def _over_group(acc, group_sum, box, m):

@@ -216,3 +216,34 @@ def test_a_thin_wire_blurs_away_instead_of_leaving_sharp_remnants():
     out = refocus(passes, A, df).image[..., 0]
     err = np.abs(out - truth)[8:-8, 8:-8]
     assert err.max() < 0.28 and err.mean() < 0.011, (err.max(), err.mean())
+
+
+def test_slabs_merge_consecutive_groups_within_their_span():
+    from mpib_validate.composite import _slabs
+    from mpib_validate.mpi import Layer
+
+    z = np.zeros((1, 1, 4), np.float32)
+    layers = [Layer(d, z, 0, 0, g) for d, g in
+              ((0.10, 0), (0.10, 1), (0.12, 1), (0.12, 2), (0.12, 3), (0.20, 3), (0.30, 5))]
+    assert _slabs(layers, 0.0) == [0, 1, 1, 2, 3, 3, 4]  # one slab per group
+    assert _slabs(layers, 0.05) == [0, 0, 0, 0, 1, 1, 2]
+    assert _slabs([Layer(0.1, z, 0, 0)], 1.0) == [None]
+
+
+def test_slabs_close_the_seams_of_a_continuous_surface():
+    """A smooth ramp (blur radius sweeping 4 px over 64 px) cut into additive groups: where
+    two groups of the one surface meet, each group's blurred edge lets the other through
+    ("over" of two half-covered edges) and the coverage dips. Mean coverage deficit in
+    the frame's interior, measured: 0.096 with one slab per group, 0.027 with 2 px slabs
+    (fewer seams), 0 with 4 px slabs (the whole ramp one slab); the over split's backing
+    gives 0.014. Required: 2 px slabs at least halve the deficit."""
+    H, W, A = 40, 64, 30.0
+    x = np.arange(W)[None, :] * np.ones((H, 1))
+    D = 1.0 + 0.002 * x
+    rgb = np.stack([0.2 + 0.004 * x] * 3, -1)
+    add, _ = layers_from_passes(rgb, D, A, PassesSettings(split="additive"))
+    deficit = {}
+    for sl in (None, 2.0):
+        cov = C.composite(add, A, 1.2, C.CompositeSettings(slab_px=sl))[5:-5, 10:-10, 3]
+        deficit[sl] = float((1.0 - np.minimum(cov, 1.0)).mean())
+    assert deficit[2.0] < 0.5 * deficit[None], deficit
