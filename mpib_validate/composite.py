@@ -247,10 +247,11 @@ def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
     cmax = np.zeros(C - 1, np.float32)
     frame = (m, m + H, m, m + W)
     group_sum, group_box, group_id = None, None, None  # the additive slab being summed
-    slab_of = _slabs(mpi.layers, (settings.slab_px or 0.0) / blur_parameter)
-    for i, layer in enumerate(mpi.layers):  # far to near
+    layers, slab_of = _merge_within_slabs(
+        mpi.layers, _slabs(mpi.layers, (settings.slab_px or 0.0) / blur_parameter))
+    for i, layer in enumerate(layers):  # far to near
         if progress is not None:
-            progress(i / max(len(mpi.layers), 1))
+            progress(i / max(len(layers), 1))
         rho = blur_parameter * (layer.disparity - focus_disparity)
         if settings.crop:
             R = _reach(rho, settings)
@@ -319,6 +320,42 @@ def _slabs(layers, span: float) -> list:
         last = l.group
         out.append(slab)
     return out
+
+
+def _merge_within_slabs(layers, slab_of):
+    """Layers of one slab on the same plane summed into one (box union): a slab is
+    summed after blurring anyway, and the blur is linear, so each plane of a slab is
+    blurred once. Returns the layers and their slab ids, in slab order (ungrouped
+    layers pass through)."""
+    if all(s is None for s in slab_of):
+        return layers, slab_of
+    merged: dict = {}
+    order = []
+    for layer, slab in zip(layers, slab_of):
+        key = (slab, layer.disparity) if slab is not None else (id(layer),)
+        if key not in merged:
+            merged[key] = [layer]
+            order.append(key)
+        else:
+            merged[key].append(layer)
+    out, slabs = [], []
+    for key in order:
+        group = merged[key]
+        first = group[0]
+        if len(group) == 1:
+            out.append(first)
+        else:
+            y0 = min(l.y0 for l in group)
+            x0 = min(l.x0 for l in group)
+            y1 = max(l.box[1] for l in group)
+            x1 = max(l.box[3] for l in group)
+            rgba = np.zeros((y1 - y0, x1 - x0, first.rgba.shape[2]), np.float32)
+            for l in group:
+                ly0, ly1, lx0, lx1 = l.box
+                rgba[ly0 - y0:ly1 - y0, lx0 - x0:lx1 - x0] += l.rgba
+            out.append(Layer(first.disparity, rgba, y0, x0, first.group))
+        slabs.append(key[0] if len(key) == 2 else None)
+    return out, slabs
 
 
 def _over_group(acc, group_sum, box, m):
