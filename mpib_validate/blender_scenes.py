@@ -167,6 +167,12 @@ def _half_view(z, spec):
     return z * 0.5 * spec.width / f, z * 0.5 * spec.height / f
 
 
+def _px(z, spec):
+    """Metres per pixel at depth z at the reference width (thin parts keep their pixel
+    widths at 320 px and scale with the image)."""
+    return z / (spec.lens_mm / spec.sensor_mm * REFERENCE_WIDTH)
+
+
 def _layout_suzanne(rng, spec):
     zw = 2.2
     hw, hh = _half_view(zw, spec)
@@ -204,8 +210,7 @@ def _layout_fence(rng, spec):
     objs = [_wall(zw, 2 * hw, 2 * hh, _brick([0.45, 0.35, 0.28], [0.3, 0.38, 0.45], [0.6] * 3,
                                               0.2, 0.08, 0.01))]
     fw, fh = _half_view(zf, spec)
-    px = zf / (spec.lens_mm / spec.sensor_mm * REFERENCE_WIDTH)  # metres per px at 320
-    wire_r = 0.75 * px  # 1.5 px across at 320 px wide
+    wire_r = 0.75 * _px(zf, spec)  # 1.5 px across at 320 px wide
     tubes = []
     step = 0.06
     x0 = -fw * 1.3 + rng.uniform(0, step)
@@ -225,7 +230,7 @@ def _layout_fence(rng, spec):
         x = float(rng.uniform(-1.1, 1.1) * bw)
         base = bh * 1.05
         height = float(rng.uniform(0.25, 0.6) * bh)
-        width = float(rng.uniform(1.5, 4.0)) * z / (spec.lens_mm / spec.sensor_mm * REFERENCE_WIDTH)
+        width = float(rng.uniform(1.5, 4.0)) * _px(z, spec)
         lean = float(rng.uniform(-0.4, 0.4) * height)
         blades.append([[x - width / 2, base, z], [x + width / 2, base, z],
                        [x + lean, base - height, z + float(rng.uniform(-0.05, 0.05))]])
@@ -243,7 +248,7 @@ def _layout_fence(rng, spec):
         for k in range(n):
             t = k / (n - 1)
             pts.append([x + amp * math.sin(3 * t + ph), -sh * 1.1 + t * sh * 1.4, z])
-        width = float(rng.uniform(0.5, 1.2)) * z / (spec.lens_mm / spec.sensor_mm * REFERENCE_WIDTH)
+        width = float(rng.uniform(0.5, 1.2)) * _px(z, spec)
         strands.append({"points": pts, "width": width})
     objs.append({"name": "strands", "shape": "ribbons", "ribbons": strands,
                  "mat": _diffuse([0.95, 0.85, 0.55])})
@@ -266,8 +271,7 @@ def _layout_bokeh(rng, spec):
     for i in range(22):
         z = float(rng.uniform(2.6, 3.6))
         ew, eh = _half_view(z, spec)
-        metres_px = z / (spec.lens_mm / spec.sensor_mm * REFERENCE_WIDTH)
-        r = float(rng.uniform(0.6, 2.0)) * metres_px  # 1.2 to 4 px across at 320 px
+        r = float(rng.uniform(0.6, 2.0)) * _px(z, spec)  # 1.2 to 4 px across at 320 px
         col = rng.uniform(0.4, 1.0, 3)
         col = col / col.max()
         objs.append({"name": f"light{i}", "shape": "sphere",

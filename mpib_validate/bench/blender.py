@@ -238,13 +238,15 @@ def write_crops(path: Path, strips: list) -> None:
 # The suite
 
 
-def run(out: Path, quick: bool = True) -> dict:
+def run(out: Path, quick: bool = True, config: dict | None = None) -> dict:
+    """The suite; ``config`` (``width``, ``height``, ``spp``, ``sharp_spp``) replaces
+    :data:`QUICK` / :data:`FULL` (tests run it tiny)."""
     from ..blender_scenes import FOCI, SceneSpec, load_scene, render_suite, suite_specs
     from .report import pareto_plot
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    cfg = QUICK if quick else FULL
+    cfg = dict(config or (QUICK if quick else FULL))
     specs = suite_specs(cfg["width"], cfg["height"])
     emit_specs = [SceneSpec("emitters", 0, cfg["width"], cfg["height"], f) for f in FOCI]
     t0 = time.perf_counter()
