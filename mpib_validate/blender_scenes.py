@@ -10,7 +10,8 @@ scene, so the suite grows by adding specs, not code. Kinds (:data:`KINDS`):
 - ``spheres``: smooth checkered balls at several depths before a wall;
 - ``fence``: thin structures before a wall: fence wires about 1.5 px wide, grass
   blades, hair-like strands (sub-pixel to 1 px ribbons);
-- ``bokeh``: small HDR emitters (radiance 20-200) partly hidden by a pillar;
+- ``bokeh``: small HDR emitters (radiance 4-20, 2.4-6 px across) partly hidden by a
+  pillar and a bar;
 - ``ground``: a receding checkered ground plane with balls and boxes on it
   (continuous depth) under a sky;
 - ``veil``: a semi-transparent sheet (Transparent mixed with diffuse) before a
@@ -64,7 +65,7 @@ from pathlib import Path
 import numpy as np
 
 #: Bump when a scene's geometry, materials or render settings change: the cache key.
-BUILDER_VERSION = 1
+BUILDER_VERSION = 2
 KINDS = ("suzanne", "spheres", "fence", "bokeh", "ground", "veil", "emitters")
 FOCI = ("near", "far")
 #: Scene kinds of the accuracy suite (``emitters`` is the radius and energy check).
@@ -76,12 +77,16 @@ SUN_DIRECTION = (0.35, 0.55, 0.76)
 AMBIENT = 0.25
 #: Reference width of the default f-stops: radii scale with the width (``f_px``).
 REFERENCE_WIDTH = 320
-#: Radiance of the bokeh scene's emitters. Aperture sampling of a small bright source
-#: is noisy (a pixel's samples hit it with probability ``(s / r)^2``): measured at
-#: 160x120 with radiance 20-200, the mean of two 1024-spp renders still had a PSNR of
-#: only 31 dB (clipped); the noise is proportional to the radiance, so 8-40 (still 8x
-#: to 40x white) is 5x less noisy.
-BOKEH_STRENGTH = (8.0, 40.0)
+#: Radiance and radius (px at 320 px wide) of the bokeh scene's emitters. Aperture
+#: sampling of a small bright source is noisy: a pixel's samples hit it with probability
+#: ``p = (s / r)^2`` (s its radius, r the blur radius), so the noise is
+#: ``L sqrt(p (1 - p) / N)`` for a mean of ``L p``. Measured with radiance 20-200 and
+#: 1-3 px across, the mean of two 1024-spp renders at 160x120 still had a PSNR of only
+#: 31 dB (clipped); for the same mean, larger and dimmer emitters are less noisy
+#: (``L / sqrt(p)`` at fixed ``L p``): radiance 4-20 (4x to 20x white) and 2.4 to 6 px
+#: across give about 7 dB more.
+BOKEH_STRENGTH = (4.0, 20.0)
+BOKEH_RADIUS_PX = (1.2, 3.0)
 
 
 # --------------------------------------------------------------------------------------
@@ -271,14 +276,15 @@ def _layout_bokeh(rng, spec):
     for i in range(22):
         z = float(rng.uniform(2.6, 3.6))
         ew, eh = _half_view(z, spec)
-        r = float(rng.uniform(0.6, 2.0)) * _px(z, spec)  # 1.2 to 4 px across at 320 px
+        r = float(rng.uniform(*BOKEH_RADIUS_PX)) * _px(z, spec)
         col = rng.uniform(0.4, 1.0, 3)
         col = col / col.max()
         objs.append({"name": f"light{i}", "shape": "sphere",
                      "loc": [float(rng.uniform(-0.9, 0.9) * ew), float(rng.uniform(-0.8, 0.8) * eh), z],
                      "radius": r, "mat": _emitter(col, float(rng.uniform(*BOKEH_STRENGTH)))})
+    # the emitters' aperture noise (see BOKEH_STRENGTH): 4x the samples, 6 dB less noise
     return {"objects": objs, "focus": {"near": zp, "far": 3.0}, "fstop": 1.3,
-            "world": [0.0, 0.0, 0.0]}
+            "world": [0.0, 0.0, 0.0], "spp_factor": 4}
 
 
 def _layout_ground(rng, spec):
@@ -834,7 +840,9 @@ def render_suite(out_dir, specs, spp: int, sharp_spp: int | None = None, threads
     ``meta.json``) unless a folder with the same key is there already (a cache). Files
     are written atomically, ``meta.json`` last (its key marks the folder complete).
 
-    The sharp passes do not depend on the focus: the two focus variants of a scene
+    ``spp`` is the truth's samples per seed, times the kind's ``spp_factor`` (4 for the
+    bokeh scene, whose small emitters are the noisiest). The sharp passes do not depend
+    on the focus: the two focus variants of a scene
     (same everything but ``focus``) share one sharp render. ``sharp_spp``: samples of
     the sharp Combined pass (default ``spp``). Returns the folders in ``specs`` order."""
     from .atomic import write_text
@@ -854,12 +862,13 @@ def render_suite(out_dir, specs, spp: int, sharp_spp: int | None = None, threads
             log(f"blender scenes: {spec.name}: sharp passes ({sharp_spp} spp) ...")
             sharp_cache = {sk: render_sharp(spec, sharp_spp, threads)}  # keep one at a time
         sharp = sharp_cache[sk]
-        log(f"blender scenes: {spec.name}: truth (depth of field, {spp} spp x 2 seeds) ...")
-        truth = render_truth(spec, spp, threads=threads)
+        truth_spp = int(spp) * int(layout(spec).get("spp_factor", 1))
+        log(f"blender scenes: {spec.name}: truth (depth of field, {truth_spp} spp x 2 seeds) ...")
+        truth = render_truth(spec, truth_spp, threads=threads)
         noise = noise_figures(truth["renders"][0], truth["renders"][1])
         c = lens(spec)
         meta = {"key": key, "spec": spec.to_dict(), "builder_version": BUILDER_VERSION,
-                "spp": int(spp), "sharp_spp": sharp_spp, "truth_seeds": list(TRUTH_SEEDS),
+                "spp": int(spp), "truth_spp": truth_spp, "sharp_spp": sharp_spp, "truth_seeds": list(TRUTH_SEEDS),
                 "A": c["blur_parameter"], "d_f": c["focus_disparity"],
                 "focus_distance": c["focus_distance"], "lens_mm": c["lens_mm"],
                 "sensor_width_mm": c["sensor_width_mm"], "fstop": c["fstop"],
