@@ -128,9 +128,11 @@ class SceneSpec:
     def to_dict(self) -> dict:
         return asdict(self)
 
-    def key(self, spp: int) -> str:
-        """Cache key: the spec, the sample count and :data:`BUILDER_VERSION`."""
-        blob = json.dumps({"spec": self.to_dict(), "spp": int(spp), "v": BUILDER_VERSION},
+    def key(self, spp: int, sharp_spp: int | None = None) -> str:
+        """Cache key: the spec, the truth's samples per seed (``spp`` times the kind's
+        ``spp_factor``), the sharp pass's and :data:`BUILDER_VERSION`."""
+        blob = json.dumps({"spec": self.to_dict(), "spp": truth_spp(self, spp),
+                           "sharp_spp": int(sharp_spp or spp), "v": BUILDER_VERSION},
                           sort_keys=True)
         return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
@@ -359,8 +361,9 @@ def _layout_emitters(rng, spec):
         y = (e["row"] + 0.5 - spec.height / 2) * z / f
         objs.append({"name": f"dot{k}", "shape": "disk", "loc": [x, y, z],
                      "radius": 0.5 * e["diameter_px"] * z / f, "mat": _emitter([1, 1, 1], 1.0)})
+    # energies to 1 % need less noise than the suite's scenes; on black they are cheap
     return {"objects": objs, "focus": dict(EMITTER_FOCUS), "fstop": 1.4,
-            "world": [0.0, 0.0, 0.0], "sun": False}
+            "world": [0.0, 0.0, 0.0], "sun": False, "spp_factor": 4}
 
 
 _LAYOUTS = {"suzanne": _layout_suzanne, "spheres": _layout_spheres, "fence": _layout_fence,
@@ -374,6 +377,11 @@ def layout(spec: SceneSpec) -> dict:
     spec.validate()
     rng = np.random.default_rng([spec.seed, KINDS.index(spec.kind)])
     return _LAYOUTS[spec.kind](rng, spec)
+
+
+def truth_spp(spec: SceneSpec, spp: int) -> int:
+    """Samples per seed of ``spec``'s truth: ``spp`` times the kind's ``spp_factor``."""
+    return int(spp) * int(layout(spec).get("spp_factor", 1))
 
 
 def lens(spec: SceneSpec) -> dict:
@@ -841,7 +849,7 @@ def render_suite(out_dir, specs, spp: int, sharp_spp: int | None = None, threads
     are written atomically, ``meta.json`` last (its key marks the folder complete).
 
     ``spp`` is the truth's samples per seed, times the kind's ``spp_factor`` (4 for the
-    bokeh scene, whose small emitters are the noisiest). The sharp passes do not depend
+    bokeh scene, whose small emitters are the noisiest, and for the isolated emitters). The sharp passes do not depend
     on the focus: the two focus variants of a scene
     (same everything but ``focus``) share one sharp render. ``sharp_spp``: samples of
     the sharp Combined pass (default ``spp``). Returns the folders in ``specs`` order."""
@@ -852,7 +860,7 @@ def render_suite(out_dir, specs, spp: int, sharp_spp: int | None = None, threads
     folders, sharp_cache = [], {}
     for spec in specs:
         spec.validate()
-        key = SceneSpec.key(spec, spp) + f"-{sharp_spp}"
+        key = spec.key(spp, sharp_spp)
         folder = out_dir / folder_name(spec, spp)
         folders.append(folder)
         if _complete(folder, key):
@@ -862,13 +870,13 @@ def render_suite(out_dir, specs, spp: int, sharp_spp: int | None = None, threads
             log(f"blender scenes: {spec.name}: sharp passes ({sharp_spp} spp) ...")
             sharp_cache = {sk: render_sharp(spec, sharp_spp, threads)}  # keep one at a time
         sharp = sharp_cache[sk]
-        truth_spp = int(spp) * int(layout(spec).get("spp_factor", 1))
-        log(f"blender scenes: {spec.name}: truth (depth of field, {truth_spp} spp x 2 seeds) ...")
-        truth = render_truth(spec, truth_spp, threads=threads)
+        t_spp = truth_spp(spec, spp)
+        log(f"blender scenes: {spec.name}: truth (depth of field, {t_spp} spp x 2 seeds) ...")
+        truth = render_truth(spec, t_spp, threads=threads)
         noise = noise_figures(truth["renders"][0], truth["renders"][1])
         c = lens(spec)
         meta = {"key": key, "spec": spec.to_dict(), "builder_version": BUILDER_VERSION,
-                "spp": int(spp), "truth_spp": truth_spp, "sharp_spp": sharp_spp, "truth_seeds": list(TRUTH_SEEDS),
+                "spp": int(spp), "truth_spp": t_spp, "sharp_spp": sharp_spp, "truth_seeds": list(TRUTH_SEEDS),
                 "A": c["blur_parameter"], "d_f": c["focus_disparity"],
                 "focus_distance": c["focus_distance"], "lens_mm": c["lens_mm"],
                 "sensor_width_mm": c["sensor_width_mm"], "fstop": c["fstop"],

@@ -163,8 +163,14 @@ def emitter_check(sc, images: dict) -> dict:
 
     r0 = moment_radius(sc.colour)
     expect = np.array([m["A"] * abs(1.0 / e["z"] - m["d_f"]) for e in dots])
-    r_truth = np.sqrt(np.maximum(moment_radius(sc.truth) ** 2 - r0 ** 2, 0))
-    e_truth = energy(sc.truth)
+
+    def radius(img):
+        return np.sqrt(np.maximum(moment_radius(img) ** 2 - r0 ** 2, 0))
+
+    r_truth, e_truth = radius(sc.truth), energy(sc.truth)
+    # the truth's own noise per emitter, from its two seeds (standard error of the mean)
+    r_se = np.abs(radius(sc.seeds[0]) - radius(sc.seeds[1])) / 2
+    e_se = np.abs(energy(sc.seeds[0]) - energy(sc.seeds[1])) / 2
     groups = []
     for side in ("front", "behind"):
         for diam in sorted({e["diameter_px"] for e in dots}):
@@ -173,12 +179,15 @@ def emitter_check(sc, images: dict) -> dict:
             g = {"side": side, "diameter_px": diam, "n": int(sel.sum()),
                  "expected_radius": float(expect[sel].mean()),
                  "cycles_radius": float(r_truth[sel].mean()),
-                 "cycles_vs_model": float((r_truth[sel] / expect[sel]).mean())}
+                 "cycles_vs_model": float((r_truth[sel] / expect[sel]).mean()),
+                 # relative standard error of the group's mean ratio from the truth's noise
+                 "radius_se": float(np.sqrt(((r_se[sel] / r_truth[sel]) ** 2).mean() / sel.sum())),
+                 "energy_se": float(np.sqrt(((e_se[sel] / e_truth[sel]) ** 2).mean() / sel.sum()))}
             for method in (DEFAULT, NODE):
                 if method not in images:
                     continue
                 img = images[method][0]
-                r = np.sqrt(np.maximum(moment_radius(img) ** 2 - r0 ** 2, 0))
+                r = radius(img)
                 g[f"{method}:radius_ratio"] = float((r[sel] / r_truth[sel]).mean())
                 g[f"{method}:energy_ratio"] = float((energy(img)[sel] / e_truth[sel]).mean())
             groups.append(g)
@@ -391,7 +400,8 @@ def _markdown(result) -> str:
                      f"{', '.join(_fmt(x, 1) for x in t['truth'])} | {_fmt(t['sharp'], 1)} |")
     lines += ["", "## Isolated emitters: radius and energy against Cycles", "",
               "Radius from the second moment of each emitter's window, r^2 = 2 (E - E_sharp); "
-              "energy = the window's sum. Ratios are method / Cycles, mean over the group.", "",
+              "energy = the window's sum. Ratios are method / Cycles, mean over the group; "
+              "\u00b1 the truth's noise (standard error of the group mean, from its two seeds).", "",
               "| scene | side of focus | diameter (px) | n | A\\|d - d_f\\| (px) | Cycles radius (px) | "
               "default: radius ratio | default: energy ratio | node: radius ratio | node: energy ratio |",
               "|---|---|---|---|---|---|---|---|---|---|"]
@@ -399,8 +409,8 @@ def _markdown(result) -> str:
         for g in e["groups"]:
             lines.append(f"| {e['scene']} | {g['side']} | {g['diameter_px']:g} | {g['n']} | "
                          f"{_fmt(g['expected_radius'])} | {_fmt(g['cycles_radius'])} | "
-                         f"{_fmt(g.get(DEFAULT + ':radius_ratio'), 3)} | "
-                         f"{_fmt(g.get(DEFAULT + ':energy_ratio'), 3)} | "
+                         f"{_fmt(g.get(DEFAULT + ':radius_ratio'), 3)} \u00b1 {_fmt(g['radius_se'], 3)} | "
+                         f"{_fmt(g.get(DEFAULT + ':energy_ratio'), 3)} \u00b1 {_fmt(g['energy_se'], 3)} | "
                          f"{_fmt(g.get(NODE + ':radius_ratio'), 3)} | "
                          f"{_fmt(g.get(NODE + ':energy_ratio'), 3)} |")
     if result.get("crops"):
