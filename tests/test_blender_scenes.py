@@ -102,7 +102,7 @@ def test_truth_blurs_isolated_emitters_to_the_thin_lens_radius():
     dots, step = B.emitter_grid(spec)
     centres = [(e["row"], e["col"]) for e in dots]
     sharp = B.render_sharp(spec, 64)["rgba"]
-    truth = B.render_truth(spec, 256)["renders"]
+    truth = B.render_truth(spec, 512)["renders"]
     c = B.lens(spec)
     r0 = cycles.dot_radii(sharp, centres, step, boxes=0)
     for side in ("front", "behind"):
