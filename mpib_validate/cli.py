@@ -301,7 +301,9 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Run a benchmark suite and write a report folder "
                                    "(Markdown + JSON).")
     b.add_argument("--out", default="out/bench", help="report folder (default out/bench)")
-    b.add_argument("--suite", choices=["all", "tracer", "compositor", "refocus", "addon", "hardcases", "references", "scaling"], default="all")
+    from .bench import SUITES
+
+    b.add_argument("--suite", choices=["all", *SUITES], default="all")
     mode = b.add_mutually_exclusive_group()
     mode.add_argument("--quick", action="store_true",
                       help="small scenes, a few minutes on 2 cores (the default)")

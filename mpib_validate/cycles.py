@@ -106,31 +106,33 @@ def _reset(bpy):
     return bpy.context.scene
 
 
-def _camera(bpy, bl_scene, scene: Scene, dof: bool, fault: str | None, sensor_width_mm: float,
-            shift_px: float = 0.0):
-    cam = scene.camera
-    st = cam.cycles_settings(sensor_width_mm)
+def camera_object(bpy, bl_scene, settings: dict, dof: bool, clip_end: float,
+                  shift_x: float = 0.0, width: int | None = None):
+    """Add the project's camera to ``bl_scene``: at the origin, turned 180 degrees about
+    X, so world axes = camera axes (x right, y down, looking down +Z).
+
+    ``settings`` as ``Camera.cycles_settings()`` (``lens_mm``, ``sensor_width_mm``,
+    ``sensor_fit``, ``fstop``, ``focus_distance``: ``inf`` becomes :data:`FAR_FOCUS`);
+    a disk aperture (``aperture_blades = 0``); ``shift_x`` in pixels to the right
+    (needs ``width``)."""
     data = bpy.data.cameras.new("Camera")
     data.type = "PERSP"
     data.lens_unit = "MILLIMETERS"
-    data.sensor_fit = st["sensor_fit"]
-    data.sensor_width = st["sensor_width_mm"]
-    data.lens = st["lens_mm"]
+    data.sensor_fit = settings["sensor_fit"]
+    data.sensor_width = settings["sensor_width_mm"]
+    data.lens = settings["lens_mm"]
     data.shift_y = 0.0
-    data.shift_x = float(shift_px) / cam.width  # in units of the sensor width (fit horizontal)
+    # in units of the sensor width (fit horizontal)
+    data.shift_x = float(shift_x) / width if shift_x else 0.0
     data.clip_start = 1e-4
-    depths = [card_corners(scene, c)[:, 2].max() for c in scene.cards]
-    data.clip_end = float(max(1e3, 10.0 * max(depths)))
+    data.clip_end = float(clip_end)
     data.dof.use_dof = bool(dof)
     data.dof.aperture_blades = 0
     data.dof.aperture_rotation = 0.0
     data.dof.aperture_ratio = 1.0
-    fstop = st["fstop"]
-    if fault == "radius":
-        fstop = fstop / FAULT_RADIUS
-    data.dof.aperture_fstop = float(fstop)
+    data.dof.aperture_fstop = float(settings["fstop"])
     data.dof.focus_object = None
-    z_f = st["focus_distance"]
+    z_f = settings["focus_distance"]
     data.dof.focus_distance = float(FAR_FOCUS if math.isinf(z_f) else z_f)
     obj = bpy.data.objects.new("Camera", data)
     bl_scene.collection.objects.link(obj)
@@ -140,6 +142,17 @@ def _camera(bpy, bl_scene, scene: Scene, dof: bool, fault: str | None, sensor_wi
     obj.rotation_euler = (math.pi, 0.0, 0.0)
     bl_scene.camera = obj
     return obj
+
+
+def _camera(bpy, bl_scene, scene: Scene, dof: bool, fault: str | None, sensor_width_mm: float,
+            shift_px: float = 0.0):
+    cam = scene.camera
+    st = dict(cam.cycles_settings(sensor_width_mm))
+    if fault == "radius":
+        st["fstop"] = st["fstop"] / FAULT_RADIUS
+    depths = [card_corners(scene, c)[:, 2].max() for c in scene.cards]
+    return camera_object(bpy, bl_scene, st, dof, max(1e3, 10.0 * max(depths)), shift_px,
+                         cam.width)
 
 
 def _image(bpy, card):
@@ -279,13 +292,41 @@ def build_scene(scene: Scene, spp: int, seed: int = 0, dof: bool = True, *,
     bpy = _bpy()
     bl = _reset(bpy)
     cam = scene.camera
+    configure_render(bl, cam.width, cam.height, spp, seed, threads=threads,
+                     pixel_filter=pixel_filter, filter_width=filter_width,
+                     unbiased=unbiased, transparent_bounces=4 * len(scene.cards) + 16,
+                     film_transparent=True)
+    black_world(bpy, bl)
+    configure_passes(bl, depth_pass)
+
+    shift = float(shift_px) + (0.5 if fault == "shift" else 0.0)
+    _camera(bpy, bl, scene, dof, fault, sensor_width_mm, shift)
+    for card in scene.cards:
+        _card_object(bpy, bl, scene, card, fault)
+
+    return bl
+
+
+def configure_render(bl, width: int, height: int, spp: int, seed: int, *, threads: int = 0,
+                     pixel_filter: str = "BOX", filter_width: float = 0.01,
+                     unbiased: bool = True, transparent_bounces: int = 16,
+                     film_transparent: bool = True, max_bounces: int = 0) -> None:
+    """Cycles settings shared by every scene this project renders (CPU, no adaptive
+    sampling or denoising, no clamping, the Standard view transform: linear pixels),
+    and 32-bit multilayer EXR output.
+
+    ``max_bounces = 0``: emission seen directly and, on diffuse surfaces, direct light
+    only. ``unbiased`` renders the sample subset ``[spp, 2 spp)`` (sample 0, at the pixel
+    centre, is skipped; see :func:`build_scene`). ``transparent_bounces`` is both the
+    maximum and the minimum (no Russian roulette on transparent bounces: less noise, and
+    an exact Z behind transparent surfaces)."""
     r = bl.render
     r.engine = "CYCLES"
-    r.resolution_x, r.resolution_y = cam.width, cam.height
+    r.resolution_x, r.resolution_y = int(width), int(height)
     r.resolution_percentage = 100
     r.pixel_aspect_x = r.pixel_aspect_y = 1.0
     r.use_border = False
-    r.film_transparent = True  # alpha = coverage, nothing behind the cards is black
+    r.film_transparent = bool(film_transparent)
     r.use_persistent_data = False
     r.threads_mode = "FIXED" if threads else "AUTO"
     if threads:
@@ -304,9 +345,9 @@ def build_scene(scene: Scene, spp: int, seed: int = 0, dof: bool = True, *,
     c.use_animated_seed = False
     c.use_adaptive_sampling = False
     c.use_denoising = False
-    c.max_bounces = 0  # camera rays only: emission seen directly
+    c.max_bounces = int(max_bounces)
     c.diffuse_bounces = c.glossy_bounces = c.transmission_bounces = c.volume_bounces = 0
-    c.transparent_max_bounces = 4 * len(scene.cards) + 16  # a ray crosses each card once
+    c.transparent_max_bounces = int(transparent_bounces)
     # No Russian roulette on transparent bounces (Cycles' default starts it after
     # min_transparent_bounces = 0): it adds noise, and when it ends the sample-0 path
     # behind a transparent card, Z is left at a card with alpha < pass_alpha_threshold.
@@ -323,7 +364,15 @@ def build_scene(scene: Scene, spp: int, seed: int = 0, dof: bool = True, *,
     bl.view_settings.exposure = 0.0
     bl.view_settings.gamma = 1.0
     bl.unit_settings.scale_length = 1.0
+    im = r.image_settings
+    im.media_type = "MULTI_LAYER_IMAGE"
+    im.file_format = "OPEN_EXR_MULTILAYER"
+    im.color_depth = "32"
+    im.exr_codec = "ZIP"
 
+
+def black_world(bpy, bl):
+    """A black world (strength 0): nothing behind the scene, no light from it."""
     world = bpy.data.worlds.new("World")
     if world.node_tree is None:
         world.use_nodes = True
@@ -332,23 +381,15 @@ def build_scene(scene: Scene, spp: int, seed: int = 0, dof: bool = True, *,
         bg.inputs["Color"].default_value = (0.0, 0.0, 0.0, 1.0)
         bg.inputs["Strength"].default_value = 0.0
     bl.world = world
+    return world
 
+
+def configure_passes(bl, depth_pass: bool) -> None:
+    """Combined, and the Z pass if ``depth_pass`` (first surface with alpha >= 0.5)."""
     vl = bl.view_layers[0]
     vl.use_pass_combined = True
     vl.use_pass_z = bool(depth_pass)
     vl.pass_alpha_threshold = 0.5
-
-    shift = float(shift_px) + (0.5 if fault == "shift" else 0.0)
-    _camera(bpy, bl, scene, dof, fault, sensor_width_mm, shift)
-    for card in scene.cards:
-        _card_object(bpy, bl, scene, card, fault)
-
-    im = r.image_settings
-    im.media_type = "MULTI_LAYER_IMAGE"
-    im.file_format = "OPEN_EXR_MULTILAYER"
-    im.color_depth = "32"
-    im.exr_codec = "ZIP"
-    return bl
 
 
 def render_exr(bl, path: str | os.PathLike) -> float:

@@ -54,3 +54,26 @@ def test_addon_bench_camera_reproduces_the_blur_parameter_and_focus():
                          lens["fstop"], lens["focus_distance"])
     assert math.isclose(cam.blur_parameter, 74.3, rel_tol=1e-12)
     assert math.isclose(cam.focus_disparity, 0.2514, rel_tol=1e-12)
+
+
+def test_pareto_labels_never_overlap(tmp_path):
+    """Points on top of each other still get numbers whose boxes are disjoint, and the
+    key lists every method once."""
+    pytest.importorskip("matplotlib")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    pts = [(1.0, 30.0, f"m{k}") for k in range(6)] + [(1.05, 30.02, "near"), (10.0, 20.0, "far")]
+    ax.scatter([p[0] for p in pts], [p[1] for p in pts])
+    ax.set_xscale("log")
+    key = report.label_points(ax, pts)
+    fig.canvas.draw()
+    boxes = [t.get_window_extent() for t in ax.texts if t.get_text().isdigit()]
+    assert len(boxes) == len(pts) and sorted(label for _, label in key) == sorted(p[2] for p in pts)
+    for i in range(len(boxes)):
+        for j in range(i):
+            assert not boxes[i].overlaps(boxes[j]), (i, j)
+    plt.close(fig)

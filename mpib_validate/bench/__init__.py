@@ -5,7 +5,9 @@ Dr.Jit), ``compositor`` (Eq. 1, the middle setting, the exact renderer, the fast
 and the ray tracer, Mitsuba and Cycles at a sweep of sample counts, on exact layers),
 ``refocus`` (from colour + depth: the MPI with and without the fill, the presets, the
 classical baselines, Blender's Defocus node; ``mpib refocus`` at 1920x1080), ``addon``
-(the Blender extension's operator at 1920x1080, per preset),
+(the Blender extension's operator at 1920x1080, per preset), ``blender`` (ordinary 3D
+Blender scenes against Cycles' depth of field: every preset, the Defocus node, the
+exact MPI renderer; emitter radius and energy),
 ``hardcases`` (each named generator case, per method), ``references`` (Mitsuba and
 Cycles time and noise against samples per pixel) and ``scaling``. ``index.md`` gathers the headlines, Pareto plots and boundary crops.
 """
@@ -15,7 +17,8 @@ from __future__ import annotations
 import importlib
 from pathlib import Path
 
-SUITES = ("tracer", "compositor", "refocus", "addon", "hardcases", "references", "scaling")
+SUITES = ("tracer", "compositor", "refocus", "addon", "hardcases", "references", "scaling",
+          "blender")
 
 
 def run_bench(out: Path, suite: str = "all", quick: bool = True, executor=None) -> dict:

@@ -38,37 +38,89 @@ def _group(method: str) -> str | None:
 def _mean_rows(rows, family):
     out = {}
     for r in rows:
-        if r.get("family") != family or not math.isfinite(r.get("seconds", math.nan)):
-            continue
+        if r.get("family") != family or not (r.get("seconds", math.nan) > 0):
+            continue  # no time (the input itself, a noise floor): no place on a time axis
         out.setdefault(r["method"], []).append(r)
     return {m: {k: float(np.mean([r[k] for r in rs])) for k in ("seconds", "psnr", "psnr_ob")}
             for m, rs in out.items()}
 
 
-def pareto_plot(rows, family: str, path: Path, metric: str = "psnr") -> None:
+def label_points(ax, points, fontsize: float = 7.0) -> list[tuple[int, str]]:
+    """Number the points ``[(x, y, label), ...]`` of ``ax`` and list the numbers beside
+    the axes, so that labels never overlap however close the points are.
+
+    Each number goes to the first of 8 positions around its point (just clear of its
+    marker, then 8 and 16 points further out with a leader line) whose box overlaps no
+    marker and no number placed before, in display coordinates; the key ``n  label``
+    is a text column right of the axes. Call after the points are drawn and the axis
+    scales are set. Returns the ``(number, label)`` pairs."""
+    fig = ax.figure
+    ax.autoscale_view()
+    fig.canvas.draw()  # fixes the limits and transforms
+    to_px = fig.dpi / 72.0
+    xy = ax.transData.transform([(x, y) for x, y, _ in points]) if points else np.zeros((0, 2))
+    marker = 3.5 * to_px
+    taken = [(px - marker, py - marker, px + marker, py + marker) for px, py in xy]
+    dirs = [(1, 1), (1, -1), (-1, 1), (-1, -1), (1, 0), (-1, 0), (0, 1), (0, -1)]
+    order = sorted(range(len(points)), key=lambda i: (xy[i][0], xy[i][1]))
+    key = []
+    for n, i in enumerate(order, 1):
+        px, py = xy[i]
+        w, h = (0.62 * len(str(n)) + 0.4) * fontsize * to_px, 1.1 * fontsize * to_px
+        best = None
+        for extra in (0.0, 8.0, 16.0):
+            for dx, dy in dirs:
+                cx = px + dx * (marker + w / 2 + (1.0 + extra) * to_px)
+                cy = py + dy * (marker + h / 2 + (1.0 + extra) * to_px)
+                box = (cx - w / 2, cy - h / 2, cx + w / 2, cy + h / 2)
+                if not any(box[0] < t[2] and t[0] < box[2] and box[1] < t[3] and t[1] < box[3]
+                           for t in taken):
+                    best = (cx, cy, box, extra)
+                    break
+            if best:
+                break
+        if best is None:  # everything taken: the outer ring, up and right
+            cx, cy = px + marker + w / 2 + 17 * to_px, py + marker + h / 2 + 17 * to_px
+            best = (cx, cy, (cx - w / 2, cy - h / 2, cx + w / 2, cy + h / 2), 16.0)
+        cx, cy, box, extra = best
+        taken.append(box)
+        tx, ty = ax.transData.inverted().transform((cx, cy))
+        arrow = {"arrowstyle": "-", "lw": 0.5, "color": "0.5"} if extra > 0 else None
+        ax.annotate(str(n), (points[i][0], points[i][1]), xytext=(tx, ty), textcoords="data",
+                    fontsize=fontsize, ha="center", va="center", arrowprops=arrow)
+        key.append((n, points[i][2]))
+    ax.text(1.02, 1.0, "\n".join(f"{n:>2}  {label}" for n, label in key), transform=ax.transAxes,
+            va="top", ha="left", fontsize=fontsize, family="monospace")
+    return key
+
+
+def pareto_plot(rows, family: str, path: Path, metric: str = "psnr",
+                reference: str = "the ray tracer", title: str | None = None) -> None:
+    """Error against time, one point per method (mean over the family's scenes), each
+    numbered (:func:`label_points`), coloured by its legend group."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     means = _mean_rows(rows, family)
-    fig, ax = plt.subplots(figsize=(8.5, 5.5))
+    fig, ax = plt.subplots(figsize=(10.5, 5.5))
+    fig.subplots_adjust(left=0.08, right=0.69, top=0.93, bottom=0.1)
+    points = []
     for name, _ in GROUPS:
         pts = [(m, v) for m, v in means.items() if _group(m) == name]
         if not pts:
             continue
         ax.scatter([v["seconds"] for _, v in pts], [min(v[metric], 80) for _, v in pts],
                    label=name, s=28)
-        for m, v in pts:
-            ax.annotate(m, (v["seconds"], min(v[metric], 80)), fontsize=6, alpha=0.8,
-                        xytext=(3, 2), textcoords="offset points")
+        points += [(v["seconds"], min(v[metric], 80), m) for m, v in pts]
     ax.set_xscale("log")
     ax.set_xlabel("time (s, log scale)")
-    ax.set_ylabel(f"{metric.upper().replace('_OB', '_ob')} against the ray tracer (dB)")
-    ax.set_title(f"Error against time, {family} disparity")
+    ax.set_ylabel(f"{metric.upper().replace('_OB', '_ob')} against {reference} (dB)")
+    ax.set_title(title or f"Error against time, {family} disparity")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7, loc="lower right")
-    fig.tight_layout()
+    label_points(ax, points)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
@@ -221,6 +273,15 @@ def write_index(out: Path, results: dict) -> Path:
                   "![photo](photo.png)", ""]
     except ImportError:
         pass
+    if "blender" in results:
+        b = results["blender"]
+        lines += ["## Ordinary 3D Blender scenes", "",
+                  "Against Cycles' own depth of field; inputs are Cycles' sharp Combined and Z "
+                  "passes (see [blender.md](blender.md)).", ""]
+        lines += [f"![blender]({p})" for p in b.get("plots", [])]
+        if b.get("crops"):
+            lines.append(f"![blender crops]({b['crops']})")
+        lines.append("")
     if "scaling" in results:
         lines += ["## Scaling", "", "![scaling](scaling.png)", ""]
     lines += ["## Suites", ""]
