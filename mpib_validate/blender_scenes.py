@@ -769,9 +769,14 @@ def noise_figures(a: np.ndarray, b: np.ndarray) -> dict:
 
 def passes_header(spec: SceneSpec) -> dict:
     """The ``mpib`` header attribute of ``passes.exr``: ``{"camera": ...}`` with the
-    image-space camera (``Camera.to_dict()``) and the Blender lens settings."""
-    return {"camera": {**camera(spec).to_dict(), **{k: v for k, v in lens(spec).items()
-                                                    if k not in ("width", "height")}},
+    image-space camera (``Camera.to_dict()``) and the Blender lens settings under
+    ``blender`` (the schema of :mod:`mpib_validate.camera_header`), so ``mpib refocus
+    passes.exr`` needs no lens options."""
+    c = lens(spec)
+    blender = {k: c[k] for k in ("lens_mm", "sensor_width_mm", "sensor_fit", "fstop",
+                                 "focus_distance", "unit_scale", "width", "height")}
+    blender["sensor_height_mm"] = 24.0  # Blender's default; unused with fit HORIZONTAL
+    return {"camera": {**camera(spec).to_dict(), "blender": blender},
             "engine": "cycles", "scene": spec.to_dict()}
 
 

@@ -151,10 +151,17 @@ def test_render_suite_writes_the_folder_and_reuses_it(suite):
     # the passes carry the camera as `mpib render` does, so `mpib refocus` needs no lens options
     from mpib_validate.refocus import load_passes
 
+    from mpib_validate.camera_header import resolve
+
     p = load_passes(folder / "passes.exr")
-    assert math.isclose(p.camera["blur_parameter"], c["blur_parameter"], rel_tol=1e-12)
-    assert math.isclose(p.camera["focus_disparity"], c["focus_disparity"], rel_tol=1e-12)
-    assert p.camera["fstop"] == c["fstop"] and p.camera["sensor_fit"] == "HORIZONTAL"
+    assert math.isclose(p.camera.image["blur_parameter"], c["blur_parameter"], rel_tol=1e-12)
+    assert p.camera.blender["fstop"] == c["fstop"]
+    assert p.camera.blender["sensor_fit"] == "HORIZONTAL"
+    # the Blender form alone gives the same camera (the header's two forms agree)
+    only_lens = type(p.camera)(p.camera.source, p.camera.blender, {})
+    cam = resolve(only_lens, {}, spec.width, spec.height, folder / "passes.exr").camera
+    assert math.isclose(cam.blur_parameter, c["blur_parameter"], rel_tol=1e-9)
+    assert math.isclose(cam.focus_disparity, c["focus_disparity"], rel_tol=1e-9)
     sc = B.load_scene(folder)
     assert np.allclose(sc.truth, sc.seeds.mean(0), atol=1e-6)
 
@@ -167,7 +174,8 @@ def test_default_preset_beats_the_sharp_input_at_boundaries(suite):
     _, spec, folder = suite
     sc = B.load_scene(folder)
     p = load_passes(folder / "passes.exr")
-    out = BB.premultiplied(refocus(p, p.camera["blur_parameter"], p.camera["focus_disparity"]).image)
+    out = BB.premultiplied(refocus(p, p.camera.image["blur_parameter"],
+                                   p.camera.image["focus_disparity"]).image)
     mask = BB.boundary_mask(sc.depth, sc.meta["A"], sc.meta["d_f"])
     assert 0.05 < mask.mean() < 0.9
     t = np.clip(sc.truth, 0, 1)

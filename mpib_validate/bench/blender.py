@@ -12,7 +12,8 @@ focus, each method's time, PSNR, SSIM, PSNR_ob and SSIM_ob (colour clipped to [0
 - ``blender-defocus-node``: Blender's Defocus node on the same passes (its own time);
 - ``sharp input``: the passes' colour itself;
 - ``exact-mpi``: the default preset's MPI (``passes.layers_from_passes``, as
-  ``refocus.refocus`` builds it) rendered through every aperture sample
+  ``refocus.refocus`` builds it, but with the over split, since additive groups have
+  no card form) rendered through every aperture sample
   (``composite.render_exact``), premultiplied; ``exact-mpi (normalised)`` beside it;
 - ``truth noise floor``: the PSNR of the truth's own noise, from the two seeds
   (``psnr(a, b) + 20 log10 2``: the mean's noise has a quarter of the pair's MSE).
@@ -36,6 +37,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -89,9 +91,13 @@ def method_images(sc, exact_samples: int = 1024) -> dict:
     from ..presets import PRESETS, get_preset
     from ..refocus import load_passes, refocus
 
-    passes = load_passes(sc.folder / "passes.exr")
-    A = float(passes.camera["blur_parameter"])
-    d_f = float(passes.camera["focus_disparity"])
+    from ..camera_header import resolve
+
+    path = sc.folder / "passes.exr"
+    passes = load_passes(path)
+    H, W = passes.depth.shape
+    cam = resolve(passes.camera, {}, W, H, path).camera  # as mpib refocus reads it
+    A, d_f = float(cam.blur_parameter), float(cam.focus_disparity)
     out = {}
     for name in PRESETS:
         refocus(passes, A, d_f, name)  # warm-up (kernel caches), untimed
@@ -110,7 +116,9 @@ def method_images(sc, exact_samples: int = 1024) -> dict:
 
     def exact():
         D = depth_to_disparity(passes.depth, source=passes.depth_source)
-        mpi, _ = layers_from_passes(passes.colour, D, A, p.passes)
+        # the card form needs the over split (additive groups have none); the same
+        # planes and edges as the preset otherwise
+        mpi, _ = layers_from_passes(passes.colour, D, A, replace(p.passes, split="linear"))
         return render_exact(mpi, camera(sc.spec), samples.stratified(exact_samples))
 
     img, seconds = _timed(exact)
