@@ -1,16 +1,18 @@
-"""Blender's compositor Defocus node (bpy 5.0): the Z-buffer post-process to beat.
+"""Blender's compositor Defocus node (bpy 4.2 to 5.x): the Z-buffer post-process to beat.
 
 :func:`defocus` feeds an all-in-focus image and its depth (planar Z, scene units =
-metres) through ``Image -> Defocus -> Group Output`` in a compositor node tree
-(``scene.compositing_node_group``, 5.0 API: no Composite node, a Group Output with an
-``Image`` socket), renders it (no 3D render happens: the tree has no Render Layers
-node), and reads the EXR it writes. The node is set up as an artist would: Z-buffer
+metres) through ``Image -> Defocus -> output`` in the scene's compositor tree (made by
+:func:`.blender_compat.compositor_tree`; the output is a Group Output with an ``Image``
+socket on 5.x, a Composite node on 4.x: :func:`.blender_compat.tree_output`), renders
+it (no 3D render happens: the tree has no Render Layers node), and reads the EXR it
+writes. The node is set up as an artist would: Z-buffer
 mode (``use_zbuffer = True``), its own ``f_stop`` copied from the camera, a disk
 bokeh, ``blur_max`` at least the largest radius it will compute, and a scene camera
 with the same lens, sensor (fit horizontal) and focus distance.
 
 What the node does (read in its source, ``node_composite_defocus.cc``, and measured
-by :func:`measure_defects`):
+by :func:`measure_defects` on 5.0.1; ``tests/test_cycles.py`` checks them on every
+Blender that ``make test-blender-versions`` covers):
 
 - CoC radius (Potmesil-Chakravarty eq. 8) ``r = A |d - d_f| * z_f / (z_f - f)``
   pixels: the true thin-lens radius times an extra factor ``z_f / (z_f - f)``
@@ -42,6 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import blender_compat as _compat
 from . import exr as _exr
 
 #: Blender's default sensor height (mm), used by the AUTO-fit defect.
@@ -117,25 +120,26 @@ def _setup(bpy, in_path: Path, width: int, height: int, camera_settings: dict, *
     sc.camera = obj
 
     img = bpy.data.images.load(str(in_path), check_existing=False)
-    nt = bpy.data.node_groups.new("Defocus", "CompositorNodeTree")
-    sc.compositing_node_group = nt
-    nt.interface.new_socket("Image", in_out="OUTPUT", socket_type="NodeSocketColor")
+    nt = _compat.compositor_tree(sc, create=True, name="Defocus")
+    nt.nodes.clear()  # 4.x starts with Render Layers -> Composite: no 3D render wanted
     src = nt.nodes.new("CompositorNodeImage")
     src.image = img
-    out = nt.nodes.new("NodeGroupOutput")
+    # the multilayer EXR's Combined pass: "Combined" on 5.x, "Image" on 4.x
+    colour = src.outputs.get("Combined") or src.outputs["Image"]
+    out = _compat.tree_output(nt).inputs[_compat.IMAGE_SOCKET]
     if not with_node:
-        nt.links.new(src.outputs["Combined"], out.inputs[0])
+        nt.links.new(colour, out)
         return sc
     node = nt.nodes.new("CompositorNodeDefocus")
-    node.use_zbuffer = bool(use_zbuffer)
-    node.z_scale = float(z_scale)
-    node.f_stop = float(f_stop)
-    node.blur_max = float(blur_max)
-    node.bokeh = bokeh
-    node.angle = 0.0
-    nt.links.new(src.outputs["Combined"], node.inputs["Image"])
+    _compat.set_option(node, "use_zbuffer", bool(use_zbuffer))
+    _compat.set_option(node, "z_scale", float(z_scale))
+    _compat.set_option(node, "f_stop", float(f_stop))
+    _compat.set_option(node, "blur_max", float(blur_max))
+    _compat.set_option(node, "bokeh", bokeh)
+    _compat.set_option(node, "angle", 0.0)
+    nt.links.new(colour, node.inputs["Image"])
     nt.links.new(src.outputs["Depth"], node.inputs["Z"])
-    nt.links.new(node.outputs["Image"], out.inputs[0])
+    nt.links.new(node.outputs["Image"], out)
     return sc
 
 
