@@ -5,10 +5,11 @@ metres) through ``Image -> Defocus -> output`` in the scene's compositor tree (m
 :func:`.blender_compat.compositor_tree`; the output is a Group Output with an ``Image``
 socket on 5.x, a Composite node on 4.x: :func:`.blender_compat.tree_output`), renders
 it (no 3D render happens: the tree has no Render Layers node), and reads the EXR it
-writes. The node is set up as an artist would: Z-buffer
-mode (``use_zbuffer = True``), its own ``f_stop`` copied from the camera, a disk
-bokeh, ``blur_max`` at least the largest radius it will compute, and a scene camera
-with the same lens, sensor (fit horizontal) and focus distance.
+writes. The node is set up as an artist would: Z-buffer mode (``use_zbuffer = True``),
+its own ``f_stop`` copied from the camera, a disk bokeh, ``blur_max`` at least the
+largest radius it will compute, and a scene camera with the same lens, sensor (fit
+horizontal) and focus distance. On 4.x its low-quality ``use_preview`` mode (on by
+default there; 5.x has no such mode) is switched off.
 
 What the node does (read in its source, ``node_composite_defocus.cc``, and measured
 by :func:`measure_defects` on 5.0.1; ``tests/test_cycles.py`` checks them on every
@@ -23,8 +24,9 @@ Blender that ``make test-blender-versions`` covers):
 - a gather over a square window of half-size ``blur_max`` (measured in 5.0.1: a near
   dot whose radius exceeds the circle of confusion at infinity is not cut, and the
   time grows with ``blur_max`` even when every radius is smaller: 4x ``blur_max``,
-  about 4-5x the time); its disk kernel is an image of ``2 blur_max + 1`` pixels
-  sampled bilinearly, so the output also changes slightly with ``blur_max``;
+  about 4-5x the time; so does 4.5.15, while on 4.2.23 the time does not grow with
+  ``blur_max``, ratio 0.8 to 1.1); its disk kernel is an image of ``2 blur_max + 1`` pixels sampled
+  bilinearly, so the output also changes slightly with ``blur_max``;
 - a pixel takes a neighbour only when the offset is within both radii, so a blurred
   foreground never spreads over an in-focus background (hard foreground edges), and
   the result is normalised per pixel, so energy is not conserved where radii change:
@@ -137,6 +139,8 @@ def _setup(bpy, in_path: Path, width: int, height: int, camera_settings: dict, *
     _compat.set_option(node, "blur_max", float(blur_max))
     _compat.set_option(node, "bokeh", bokeh)
     _compat.set_option(node, "angle", 0.0)
+    if "use_preview" in node.bl_rna.properties:  # 4.x: on by default, a low-quality mode
+        node.use_preview = False
     nt.links.new(colour, node.inputs["Image"])
     nt.links.new(src.outputs["Depth"], node.inputs["Z"])
     nt.links.new(node.outputs["Image"], out)

@@ -397,8 +397,11 @@ def test_defocus_node_defects_still_present():
     # AUTO fit on a square image: 36 / 24 = 1.5 (bisection to 1e-3 on each radius)
     assert abs(d["auto_fit_factor"] - 1.5) < 5e-3, d
     # search window = blur_max: 4x the window costs well over 2x although no radius
-    # exceeds the smallest window (area ratio 16; timing noise on a busy machine allowed)
-    assert d["search_cost_ratio"] > 2.0, d
+    # exceeds the smallest window (area ratio 16; timing noise on a busy machine
+    # allowed). Blender 4.5 and 5.x; 4.2's node costs the same whatever blur_max
+    # (measured ratio 0.8 to 1.1 on bpy 4.2.23, with and without its preview mode).
+    if bpy.app.version >= (4, 5, 0):
+        assert d["search_cost_ratio"] > 2.0, d
     # a blurred foreground does not spread over an in-focus background (truth: ~r/4 per
     # edge pixel); anything under 10 % of the truth is the defect
     assert d["fg_spread_fraction"] < 0.1, d
