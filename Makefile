@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test test-all bench addon clean
+.PHONY: setup demo test test-all test-blender-versions bench addon clean
 
 $(STAMP): pyproject.toml constraints.txt scripts/setup.sh
 	bash scripts/setup.sh $(PY) $(VENV)
@@ -23,6 +23,12 @@ test: $(STAMP)
 test-all: $(STAMP)
 	$(BIN)/python -m pytest -q
 
+# The Blender tests (marker `blender`) on bpy 4.2 LTS, 4.5 LTS and the newest 5.x, each
+# in its own pinned virtualenv (.venv-bpy42, .venv-bpy45, .venv-bpy5x; Python 3.11, and
+# 3.13 for 5.1+), built on first use: scripts/blender-versions.txt.
+test-blender-versions:
+	bash scripts/test_blender_versions.sh
+
 bench: $(STAMP)
 	$(BIN)/mpib bench --out out/bench
 
@@ -30,4 +36,4 @@ addon: $(STAMP)
 	$(BIN)/python scripts/build_addon.py --out dist
 
 clean:
-	rm -rf $(VENV) out dist blender_addon/wheels
+	rm -rf $(VENV) .venv-bpy42 .venv-bpy45 .venv-bpy5x out dist blender_addon/wheels

@@ -1,4 +1,4 @@
-"""Cycles (Blender 5.0, ``bpy``) thin-lens references for card scenes.
+"""Cycles (Blender 4.2 to 5.x, ``bpy``) thin-lens references for card scenes.
 
 Each card becomes a planar quad whose pinhole projection is exactly its texture
 extent; the texture is looked up through the pinhole projection of the shading point
@@ -21,14 +21,29 @@ Conventions (see ``shared/REFERENCE.md``):
   ``filter_width`` says) spreads the samples uniformly over the pixel square: the
   canonical model's box average; Closest texture interpolation (nearest texel).
   Cycles puts sample 0 at the pixel centre; :func:`build_scene` skips it (a sample
-  subset) so that the average is unbiased at any sample count.
+  subset) so that the average is unbiased at any sample count. The sampling pattern is
+  Tabulated Sobol on every Blender (4.2, 4.5 and 5.3 default to blue noise).
+- Pinhole views (``dof=False``) sample the pixel centres instead (Gaussian filter of
+  width 0.01: every sample within 0.02 px of the centre, measured with 4096 samples on
+  stripes): there every pixel sees exactly one texel of each card (the lookup
+  is the pinhole projection, and texel edges are pixel edges), so the centre value
+  *is* the box average, and no sample comes near a texel edge. A box sample at a pixel
+  edge is ambiguous in float32: bpy 5.3's blue-noise pattern put sample 5 of pixel
+  (26, 19) (seed 0, the 48x40 'varying' test scene) at the pixel's right edge, where
+  the projective lookup (``X/Z``, scale and offset, ``u W`` in the texture) gives the
+  texel coordinate 23.0 exactly, so Closest read the next texel (relative error
+  0.157). Pixel centres keep 0.48 px from every edge, against lookup rounding below
+  3e-5 px (measured on bpy 5.0.1 and 5.3.0 by moving the centres towards a texel edge
+  with the camera shift: every read is right from 3e-5 px on, 2 of 607 are wrong at
+  1e-5 px, most at 1e-6 px).
 - No Russian roulette on transparent bounces (``min_transparent_bounces`` =
   ``transparent_max_bounces``): less noise, and an exact Z pass behind transparent cards.
 - Outputs are linear radiance: ``rgba[..., :3]`` premultiplied, ``rgba[..., 3]`` the
   coverage (film transparent), depth planar along the view axis (scene units) of the
   front-most card with alpha >= 0.5 at the pixel centre, 1e10 where there is none.
 
-Measured on 2 CPU cores (bpy 5.0.1): see :func:`noise_vs_spp`; all-in-focus renders
+Version differences go through :mod:`.blender_compat`. Measured on 2 CPU cores
+(bpy 5.0.1): see :func:`noise_vs_spp`; all-in-focus renders
 equal the tracer's to float rounding, and defocused ones agree with it to the level of
 Monte Carlo noise (:func:`agreement`, ``tests/test_cycles.py``).
 
@@ -47,6 +62,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .blender_compat import set_multilayer_exr, set_sample_subset
 from .scene import Scene
 
 #: Depth Cycles writes where no surface is solid (scene units).
@@ -68,7 +84,8 @@ def _bpy():
         import bpy  # noqa: F401
     except ImportError as exc:  # pragma: no cover - depends on the environment
         raise ImportError("Cycles rendering needs Blender as a Python module: "
-                          "pip install 'mpib-validate[blender]' (bpy==5.0.1, Python 3.11)") from exc
+                          "pip install 'mpib-validate[blender]' (bpy 5.0.1 on Python 3.11, "
+                          "5.3.0 on Python 3.13)") from exc
     return bpy
 
 
@@ -176,7 +193,7 @@ def _material(bpy, scene: Scene, card, fault: str | None):
     x0, _, y0, _ = card.extent(cam)
     wt, ht = card.size
     mat = bpy.data.materials.new(card.name)
-    if mat.node_tree is None:  # 5.0 makes node trees by default (use_nodes is deprecated)
+    if mat.node_tree is None:  # 4.x: off by default; 5.x makes it (use_nodes is deprecated)
         mat.use_nodes = True
     mat.cycles.emission_sampling = "NONE"  # not a light: no light-tree work
     nt = mat.node_tree
@@ -254,7 +271,7 @@ def _card_object(bpy, bl_scene, scene: Scene, card, fault):
 
 
 def build_scene(scene: Scene, spp: int, seed: int = 0, dof: bool = True, *,
-                threads: int = 0, pixel_filter: str = "BOX", filter_width: float = 0.01,
+                threads: int = 0, pixel_filter: str | None = None, filter_width: float = 0.01,
                 depth_pass: bool = False, unbiased: bool = True, shift_px: float = 0.0,
                 fault: str | None = None, sensor_width_mm: float = 36.0):
     """Replace Blender's data with a Cycles scene of ``scene``; returns the bpy scene.
@@ -268,7 +285,9 @@ def build_scene(scene: Scene, spp: int, seed: int = 0, dof: bool = True, *,
             forces the width of ``BOX`` to 1 pixel whatever is asked (checked: a
             0.25-pixel image shift gives the same 0.75/0.25 mix at widths 0.01, 1 and
             2), so ``BOX`` is always the canonical box average over the pixel square.
-            ``GAUSSIAN`` with width 0.01 samples the pixel centre only.
+            ``GAUSSIAN`` with width 0.01 samples the pixel centre only. None (the
+            default): ``BOX`` with depth of field, ``GAUSSIAN`` (centres, equal to the
+            box average there, see the module notes) for the pinhole view.
         depth_pass: also write the Z pass (planar depth, sample 0 only).
         unbiased: skip Cycles' sample 0. Cycles always puts the pixel-filter position of
             sample 0 at the pixel centre (``rand_filter = (sample == 0) ? (0.5, 0.5)``
@@ -292,6 +311,8 @@ def build_scene(scene: Scene, spp: int, seed: int = 0, dof: bool = True, *,
     bpy = _bpy()
     bl = _reset(bpy)
     cam = scene.camera
+    if pixel_filter is None:
+        pixel_filter = "BOX" if dof else "GAUSSIAN"
     configure_render(bl, cam.width, cam.height, spp, seed, threads=threads,
                      pixel_filter=pixel_filter, filter_width=filter_width,
                      unbiased=unbiased, transparent_bounces=4 * len(scene.cards) + 16,
@@ -335,12 +356,17 @@ def configure_render(bl, width: int, height: int, spp: int, seed: int, *, thread
     r.use_sequencer = False
     c = bl.cycles
     c.device = "CPU"
-    c.samples = int(spp)
-    c.use_sample_subset = bool(unbiased)
+    # The same sequence on every Blender: Tabulated Sobol (5.0's default; 4.2, 4.5 and 5.3
+    # default to AUTOMATIC, i.e. blue noise), whose aligned blocks are what ``unbiased``
+    # relies on.
+    c.sampling_pattern = "TABULATED_SOBOL"
     if unbiased:
-        c.samples = 2 * int(spp)
-        c.sample_offset = int(spp)
-        c.sample_subset_length = int(spp)
+        set_sample_subset(c, int(spp), int(spp))
+    else:
+        if "use_sample_subset" in c.bl_rna.properties:
+            c.use_sample_subset = False
+        c.sample_offset = 0
+        c.samples = int(spp)
     c.seed = int(seed)
     c.use_animated_seed = False
     c.use_adaptive_sampling = False
@@ -364,11 +390,7 @@ def configure_render(bl, width: int, height: int, spp: int, seed: int, *, thread
     bl.view_settings.exposure = 0.0
     bl.view_settings.gamma = 1.0
     bl.unit_settings.scale_length = 1.0
-    im = r.image_settings
-    im.media_type = "MULTI_LAYER_IMAGE"
-    im.file_format = "OPEN_EXR_MULTILAYER"
-    im.color_depth = "32"
-    im.exr_codec = "ZIP"
+    set_multilayer_exr(r.image_settings, color_depth="32", codec="ZIP")
 
 
 def black_world(bpy, bl):

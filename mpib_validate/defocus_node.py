@@ -1,16 +1,19 @@
-"""Blender's compositor Defocus node (bpy 5.0): the Z-buffer post-process to beat.
+"""Blender's compositor Defocus node (bpy 4.2 to 5.x): the Z-buffer post-process to beat.
 
 :func:`defocus` feeds an all-in-focus image and its depth (planar Z, scene units =
-metres) through ``Image -> Defocus -> Group Output`` in a compositor node tree
-(``scene.compositing_node_group``, 5.0 API: no Composite node, a Group Output with an
-``Image`` socket), renders it (no 3D render happens: the tree has no Render Layers
-node), and reads the EXR it writes. The node is set up as an artist would: Z-buffer
-mode (``use_zbuffer = True``), its own ``f_stop`` copied from the camera, a disk
-bokeh, ``blur_max`` at least the largest radius it will compute, and a scene camera
-with the same lens, sensor (fit horizontal) and focus distance.
+metres) through ``Image -> Defocus -> output`` in the scene's compositor tree (made by
+:func:`.blender_compat.compositor_tree`; the output is a Group Output with an ``Image``
+socket on 5.x, a Composite node on 4.x: :func:`.blender_compat.tree_output`), renders
+it (no 3D render happens: the tree has no Render Layers node), and reads the EXR it
+writes. The node is set up as an artist would: Z-buffer mode (``use_zbuffer = True``),
+its own ``f_stop`` copied from the camera, a disk bokeh, ``blur_max`` at least the
+largest radius it will compute, and a scene camera with the same lens, sensor (fit
+horizontal) and focus distance. On 4.x its low-quality ``use_preview`` mode (on by
+default there; 5.x has no such mode) is switched off.
 
 What the node does (read in its source, ``node_composite_defocus.cc``, and measured
-by :func:`measure_defects`):
+by :func:`measure_defects` on 5.0.1; ``tests/test_cycles.py`` checks them on every
+Blender that ``make test-blender-versions`` covers):
 
 - CoC radius (Potmesil-Chakravarty eq. 8) ``r = A |d - d_f| * z_f / (z_f - f)``
   pixels: the true thin-lens radius times an extra factor ``z_f / (z_f - f)``
@@ -21,8 +24,9 @@ by :func:`measure_defects`):
 - a gather over a square window of half-size ``blur_max`` (measured in 5.0.1: a near
   dot whose radius exceeds the circle of confusion at infinity is not cut, and the
   time grows with ``blur_max`` even when every radius is smaller: 4x ``blur_max``,
-  about 4-5x the time); its disk kernel is an image of ``2 blur_max + 1`` pixels
-  sampled bilinearly, so the output also changes slightly with ``blur_max``;
+  about 4-5x the time; so does 4.5.15, while on 4.2.23 the time does not grow with
+  ``blur_max``, ratio 0.8 to 1.1); its disk kernel is an image of ``2 blur_max + 1`` pixels sampled
+  bilinearly, so the output also changes slightly with ``blur_max``;
 - a pixel takes a neighbour only when the offset is within both radii, so a blurred
   foreground never spreads over an in-focus background (hard foreground edges), and
   the result is normalised per pixel, so energy is not conserved where radii change:
@@ -42,6 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import blender_compat as _compat
 from . import exr as _exr
 
 #: Blender's default sensor height (mm), used by the AUTO-fit defect.
@@ -117,25 +122,28 @@ def _setup(bpy, in_path: Path, width: int, height: int, camera_settings: dict, *
     sc.camera = obj
 
     img = bpy.data.images.load(str(in_path), check_existing=False)
-    nt = bpy.data.node_groups.new("Defocus", "CompositorNodeTree")
-    sc.compositing_node_group = nt
-    nt.interface.new_socket("Image", in_out="OUTPUT", socket_type="NodeSocketColor")
+    nt = _compat.compositor_tree(sc, create=True, name="Defocus")
+    nt.nodes.clear()  # 4.x starts with Render Layers -> Composite: no 3D render wanted
     src = nt.nodes.new("CompositorNodeImage")
     src.image = img
-    out = nt.nodes.new("NodeGroupOutput")
+    # the multilayer EXR's Combined pass: "Combined" on 5.x, "Image" on 4.x
+    colour = src.outputs.get("Combined") or src.outputs["Image"]
+    out = _compat.tree_output(nt).inputs[_compat.IMAGE_SOCKET]
     if not with_node:
-        nt.links.new(src.outputs["Combined"], out.inputs[0])
+        nt.links.new(colour, out)
         return sc
     node = nt.nodes.new("CompositorNodeDefocus")
-    node.use_zbuffer = bool(use_zbuffer)
-    node.z_scale = float(z_scale)
-    node.f_stop = float(f_stop)
-    node.blur_max = float(blur_max)
-    node.bokeh = bokeh
-    node.angle = 0.0
-    nt.links.new(src.outputs["Combined"], node.inputs["Image"])
+    _compat.set_option(node, "use_zbuffer", bool(use_zbuffer))
+    _compat.set_option(node, "z_scale", float(z_scale))
+    _compat.set_option(node, "f_stop", float(f_stop))
+    _compat.set_option(node, "blur_max", float(blur_max))
+    _compat.set_option(node, "bokeh", bokeh)
+    _compat.set_option(node, "angle", 0.0)
+    if "use_preview" in node.bl_rna.properties:  # 4.x: on by default, a low-quality mode
+        node.use_preview = False
+    nt.links.new(colour, node.inputs["Image"])
     nt.links.new(src.outputs["Depth"], node.inputs["Z"])
-    nt.links.new(node.outputs["Image"], out.inputs[0])
+    nt.links.new(node.outputs["Image"], out)
     return sc
 
 

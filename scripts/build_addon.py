@@ -5,7 +5,9 @@ Usage: python scripts/build_addon.py [--out dist]
 
 The manifest (blender_addon/blender_manifest.toml) names every wheel. The project's own
 wheel is built from this checkout; the others (OpenEXR, SciPy; Blender ships numpy) are
-downloaded from PyPI for the manifest's platforms, pinned by their file names. Then
+downloaded from PyPI for the Python version and platform in each file name (cp311 for
+Blender 4.2 to 5.0, cp313 for 5.1+), pinned by those names. `--fetch-only` (run by
+scripts/setup.sh) downloads them once; building afterwards needs no network. Then
 Blender's own extension tool (inside the bpy wheel) validates and builds the zip, so
 no Blender binary is needed. Nothing is downloaded at run time.
 """
@@ -49,6 +51,14 @@ def _can_build_offline() -> bool:
     return int(setuptools.__version__.split(".")[0]) >= 68
 
 
+def python_version(tag: str, name: str) -> str:
+    """``cp313`` -> ``3.13``: the Python version a manifest wheel is for."""
+    m = re.fullmatch(r"cp(\d)(\d+)", tag)
+    if m is None:
+        sys.exit(f"build_addon: wheel {name!r} is not for one CPython version ({tag!r})")
+    return f"{m[1]}.{m[2]}"
+
+
 def run(cmd, **kw):
     print("+", " ".join(map(str, cmd)), flush=True)
     subprocess.run(cmd, check=True, **kw)
@@ -82,8 +92,10 @@ def main() -> int:
         for p in m["plat"].split("."):
             plats += ["--platform", p]
         run([sys.executable, "-m", "pip", "download", "-q", "--no-deps", "--only-binary=:all:",
-             "--python-version", "3.11", *plats, "-d", str(wheels_dir),
-             f"{m['name']}=={m['version']}"])
+             "--python-version", python_version(m["py"], name), "--implementation", "cp",
+             "--abi", m["abi"], *plats, "-d", str(wheels_dir), f"{m['name']}=={m['version']}"])
+        if not (wheels_dir / name).exists():
+            sys.exit(f"build_addon: pip did not download {name} (check the name in the manifest)")
     if args.fetch_only:
         print(f"build_addon: dependency wheels ready in {wheels_dir}")
         return 0

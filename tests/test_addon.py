@@ -19,6 +19,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 pytest.importorskip("bpy")
+pytestmark = pytest.mark.blender
 
 
 @pytest.fixture(scope="module")

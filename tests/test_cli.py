@@ -85,7 +85,8 @@ def test_compare(tmp_path):
     assert r.returncode == 2 and "image sizes differ" in r.stderr and "c.exr" in r.stderr
 
 
-@pytest.mark.parametrize("engine, spp", [("mitsuba", 16), ("cycles", 4)])
+@pytest.mark.parametrize("engine, spp", [("mitsuba", 16),
+                                         pytest.param("cycles", 4, marks=pytest.mark.blender)])
 def test_render_with_other_engines(tmp_path, engine, spp):
     pytest.importorskip({"mitsuba": "mitsuba", "cycles": "bpy"}[engine])
     r = mpib("generate", "--seed", 2, "--size", "32x24", "--out", tmp_path / "s")

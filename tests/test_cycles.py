@@ -1,4 +1,7 @@
-"""Cycles (bpy 5.0.1, CPU) against the ray tracer, Cycles' Z pass, and the Defocus node.
+"""Cycles (bpy, CPU) against the ray tracer, Cycles' Z pass, and the Defocus node.
+
+The default run uses the pinned bpy 5.0.1; `make test-blender-versions` runs this file
+on bpy 4.2 LTS, 4.5 LTS and the newest 5.x too (every test is marked ``blender``).
 
 No mocks: real ``bpy``, Cycles on the CPU, real EXR files. Scenes are small (48x40 for
 the cross-renderer tests) so that the default run stays fast; longer runs are marked
@@ -13,7 +16,7 @@ import math
 import numpy as np
 import pytest
 
-pytest.importorskip("bpy")
+bpy = pytest.importorskip("bpy")
 
 from mpib_validate import cycles  # noqa: E402
 from mpib_validate import defocus_node as dn  # noqa: E402
@@ -21,6 +24,8 @@ from mpib_validate import samples, trace  # noqa: E402
 from mpib_validate.camera import Camera  # noqa: E402
 from mpib_validate.generate import GeneratorSettings, generate  # noqa: E402
 from mpib_validate.scene import Card, Plane, Scene  # noqa: E402
+
+pytestmark = pytest.mark.blender
 
 FAMILIES = ("constant", "varying")
 #: Relative float32 rounding allowed between two exact renderers: float32 epsilon is
@@ -82,7 +87,42 @@ def test_all_in_focus_is_exact(family):
     ref, _ = trace.trace(sc, samples.pinhole(4), notices=False)
     rel = np.abs(rgba - ref) / (1.0 + np.abs(ref))
     assert rel.max() <= FLOAT_TOL, f"largest relative difference {rel.max():.3g}"
-    assert meta["blender"].startswith("5.0")
+    assert meta["blender"] == bpy.app.version_string  # the Blender that rendered it
+
+
+@pytest.mark.parametrize("pattern", ["TABULATED_SOBOL", "BLUE_NOISE"])
+def test_all_in_focus_is_exact_whatever_the_sample_positions(pattern, tmp_path):
+    """The pinhole view samples pixel centres, so no sample can sit at a pixel (= texel)
+    edge where float32 rounding of the projective lookup reads the neighbour texel.
+    With the box filter, bpy 5.3's blue-noise pattern put one sample of seed 0 exactly
+    on such an edge (relative error 0.157); here both of Cycles' patterns must be exact
+    with that seed and another."""
+    sc = small_scene("varying", hdr=True)
+    ref, _ = trace.trace(sc, samples.pinhole(4), notices=False)
+    for seed in range(2):
+        bl = cycles.build_scene(sc, 4, seed, dof=False)
+        bl.cycles.sampling_pattern = pattern
+        path = tmp_path / f"{seed}.exr"
+        cycles.render_exr(bl, path)
+        rgba, _ = cycles.read_render(path)
+        rel = np.abs(rgba - ref) / (1.0 + np.abs(ref))
+        assert rel.max() <= FLOAT_TOL, (pattern, seed, float(rel.max()))
+
+
+def test_pinhole_view_samples_pixel_centres(tmp_path):
+    """Without depth of field the default filter samples the centres: a 0.48-px image
+    shift (centres 0.02 px short of the next texel) leaves the stripes exactly 1 and 0
+    (the box filter would mix them 0.52/0.48); with depth of field it is the box.
+    Measured: Cycles' Gaussian filter of width 0.01 spreads samples beyond 0.01 px
+    (0.08 % leak at 4096 spp) but not to 0.02 px (none)."""
+    sc = stripes_scene()
+    bl = cycles.build_scene(sc, 16, 0, dof=False, shift_px=0.48)
+    assert bl.cycles.pixel_filter_type == "GAUSSIAN"
+    cycles.render_exr(bl, tmp_path / "c.exr")
+    img, _ = cycles.read_render(tmp_path / "c.exr")
+    assert np.array_equal(img[:, 0:14:2, 0], np.ones_like(img[:, 0:14:2, 0]))
+    assert np.array_equal(img[:, 1:15:2, 0], np.zeros_like(img[:, 1:15:2, 0]))
+    assert cycles.build_scene(sc, 16, 0, dof=True).cycles.pixel_filter_type == "BOX"
 
 
 def test_focus_at_infinity_and_near_focus_distance():
@@ -132,7 +172,8 @@ def test_sample_zero_is_at_pixel_centre_and_unbiased_mode_skips_it(tmp_path):
     vals = {True: [], False: []}
     for unbiased in (True, False):
         for s in seeds:
-            bl = cycles.build_scene(sc, spp, s, dof=False, shift_px=0.25, unbiased=unbiased)
+            bl = cycles.build_scene(sc, spp, s, dof=False, pixel_filter="BOX", shift_px=0.25,
+                                    unbiased=unbiased)
             p = tmp_path / f"u{unbiased}{s}.exr"
             cycles.render_exr(bl, p)
             vals[unbiased].append(cycles.read_render(p)[0][:, 0:14:2, 0])
@@ -223,7 +264,7 @@ def test_z_pass_comes_from_sample_zero(tmp_path):
         # shift 0.3 px: pixel 15 covers fg over [15.3, 16) and bg over [16, 16.3); its
         # centre (15.8) is on the fg
         bl = cycles.build_scene(sc, 16, s, dof=False, depth_pass=True, unbiased=False,
-                                shift_px=0.3)
+                                pixel_filter="BOX", shift_px=0.3)
         cycles.render_exr(bl, tmp_path / f"z{s}.exr")
         rgba, z = cycles.read_render(tmp_path / f"z{s}.exr")
         assert np.all(z[:, 15] == 2.0)
@@ -356,8 +397,11 @@ def test_defocus_node_defects_still_present():
     # AUTO fit on a square image: 36 / 24 = 1.5 (bisection to 1e-3 on each radius)
     assert abs(d["auto_fit_factor"] - 1.5) < 5e-3, d
     # search window = blur_max: 4x the window costs well over 2x although no radius
-    # exceeds the smallest window (area ratio 16; timing noise on a busy machine allowed)
-    assert d["search_cost_ratio"] > 2.0, d
+    # exceeds the smallest window (area ratio 16; timing noise on a busy machine
+    # allowed). Blender 4.5 and 5.x; 4.2's node costs the same whatever blur_max
+    # (measured ratio 0.8 to 1.1 on bpy 4.2.23, with and without its preview mode).
+    if bpy.app.version >= (4, 5, 0):
+        assert d["search_cost_ratio"] > 2.0, d
     # a blurred foreground does not spread over an in-focus background (truth: ~r/4 per
     # edge pixel); anything under 10 % of the truth is the defect
     assert d["fg_spread_fraction"] < 0.1, d
