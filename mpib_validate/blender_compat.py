@@ -169,7 +169,8 @@ def set_multilayer_exr(image_settings, color_depth: str | None = "32",
 
 
 def set_sample_subset(cycles_settings, offset: int, length: int) -> None:
-    """Make Cycles render only the samples ``[offset, offset + length)`` of its sequence.
+    """Make Cycles render only the samples ``[offset, offset + length)`` of its sequence
+    (``offset = 0``: a plain render of ``length`` samples).
 
     4.5+: ``use_sample_subset`` with ``sample_offset`` (the first index) and
     ``sample_subset_length``, the sample count being the sequence length

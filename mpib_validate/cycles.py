@@ -22,7 +22,7 @@ Conventions (see ``shared/REFERENCE.md``):
   canonical model's box average; Closest texture interpolation (nearest texel).
   Cycles puts sample 0 at the pixel centre; :func:`build_scene` skips it (a sample
   subset) so that the average is unbiased at any sample count. The sampling pattern is
-  Tabulated Sobol on every Blender (4.2, 4.5 and 5.3 default to blue noise).
+  Tabulated Sobol on every Blender (4.2, 4.5 and 5.3 default to another one).
 - Pinhole views (``dof=False``) sample the pixel centres instead (Gaussian filter of
   width 0.01: every sample within 0.02 px of the centre, measured with 4096 samples on
   stripes): there every pixel sees exactly one texel of each card (the lookup
@@ -356,17 +356,11 @@ def configure_render(bl, width: int, height: int, spp: int, seed: int, *, thread
     r.use_sequencer = False
     c = bl.cycles
     c.device = "CPU"
-    # The same sequence on every Blender: Tabulated Sobol (5.0's default; 4.2, 4.5 and 5.3
-    # default to AUTOMATIC, i.e. blue noise), whose aligned blocks are what ``unbiased``
-    # relies on.
+    # The same sequence on every Blender: Tabulated Sobol (5.0.1's default; 4.2, 4.5 and
+    # 5.3 default to AUTOMATIC, which is blue noise on 5.3), whose aligned blocks are what
+    # ``unbiased`` relies on.
     c.sampling_pattern = "TABULATED_SOBOL"
-    if unbiased:
-        set_sample_subset(c, int(spp), int(spp))
-    else:
-        if "use_sample_subset" in c.bl_rna.properties:
-            c.use_sample_subset = False
-        c.sample_offset = 0
-        c.samples = int(spp)
+    set_sample_subset(c, int(spp) if unbiased else 0, int(spp))
     c.seed = int(seed)
     c.use_animated_seed = False
     c.use_adaptive_sampling = False
