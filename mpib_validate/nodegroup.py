@@ -1,0 +1,1072 @@
+"""MPIB Refocus as a compositor node group made only of Blender's built-in nodes.
+
+A Python-defined node cannot execute in a compositor tree, but a node group of built-in
+nodes runs in Blender 4.2 to 5.x, on the CPU and the GPU compositor, and keeps working
+when the .blend is opened without the extension. This module writes Eq. 1 of the
+supplement as such a group. The graph is described ONCE, as data (:func:`describe`:
+a list of :class:`Op`), and that one description is
+
+- emitted for the 5.x API or the 4.2-4.5 API (:func:`build_group`), and
+- evaluated by a numpy model of the same nodes (:func:`evaluate`), so that the group's
+  output can be checked against it pixel for pixel.
+
+The graph (slices ``i = 0..N-1`` far to near at disparities ``d_i``, fixed when the
+group is generated; everything else is computed inside the graph, so drivers may
+animate focus and aperture):
+
+1. Blur parameter from the lens, as :func:`mpib_validate.camera.blender_camera`:
+   ``R = f_mm 1e-3 / (unit 2 N)`` (scene units), ``f_px = f_mm / sensor * W``,
+   ``A = R f_px``; focus ``d_f = 1 / z_f``; slice radius ``r_i = A |d_i - d_f|`` px.
+   "Sensor Width" is the sensor size across the image width for the camera's fit (the
+   drivers of :mod:`blender_addon.nodegroup_ops` compute it for AUTO and VERTICAL fits).
+2. Per pixel ``d = 1/Z`` from the Depth pass and the soft split between neighbouring
+   slices of :func:`mpib_validate.mpi.split_between_planes`: with
+   ``u = clamp((d - d_i) / (d_{i+1} - d_i))`` the near slice gets ``u alpha`` and the
+   far slice ``alpha (1 - u) / (1 - u alpha)``, so that "over" gives back the pixel's
+   alpha and Eq. 16 its disparity. Slice ``i`` is the image times its factor (premultiplied
+   colour and alpha).
+3. Hidden background (optional): the Inpaint node extends the pixels that belong wholly
+   to slice ``i`` outwards by ``D_i = ceil(A (d_max - d_i)) + 1`` px (the largest
+   parallax between the slice and the nearest content); the extension is kept only
+   where nearer content covers the slice (``d >= d_{i+1}``), under the slice.
+4. A disk blur of radius ``r_i`` per slice: Bokeh Blur with a round Bokeh Image (both
+   APIs; the radius is truncated to whole pixels, 5.x: Size in pixels, 4.x: Size in
+   percent of the larger image side, at most 10 %), or on 5.x the Convolve node with an
+   anti-aliased disk kernel ``clamp(r + 1/2 - |x|, 0, 1)`` built from nodes (fractional
+   radii; FFT, zero padded borders).
+5. Eq. 1 far to near with Alpha Over (premultiplied): ``acc <- acc (1 - a_i K_i) +
+   (c_i a_i, a_i) K_i``; output colour ``acc_rgb / acc_a`` (clamped >= 0), alpha 1; the
+   second output "Alpha" is ``acc_a``, the coverage of Eq. 1.
+
+Slices are placed from the depth of the last render (:func:`place_slices`): the
+adaptive planes of :func:`mpib_validate.mpi.adaptive_planes` (only where content is,
+spaced for a blur-radius quantisation error of ``tolerance_px``), with the tolerance
+raised until at most ``max_slices`` remain.
+
+The numpy model follows the nodes as Blender 5.0 implements them on the CPU (float32
+arithmetic, Bokeh Blur's sampled kernel and extended borders, Convolve's zero-padded
+FFT, Inpaint's jump flooding and smoothing), and the 4.2-4.5 Bokeh Blur for the legacy
+API; the 4.x Inpaint node is a different algorithm and is not modelled.
+
+``bpy`` is imported inside the functions only, so the package imports without it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+GROUP_NAME = "MPIB Refocus"
+
+# --------------------------------------------------------------------------------------
+# Version-dependent helpers. TEMPORARY: the shared module mpib_validate.blender_compat
+# (another branch) provides these under the same names; swap at merge.
+
+
+def is_legacy_api(bpy) -> bool:
+    """True for Blender 4.2-4.5 (``scene.node_tree``, Composite node, node options as
+    properties); False for 5.x (``scene.compositing_node_group``, options as sockets)."""
+    return tuple(bpy.app.version) < (5, 0, 0)
+
+
+def compositor_tree(scene, create: bool = True):
+    """The scene's compositor node tree (created if missing and ``create``), or None."""
+    import bpy
+
+    if not is_legacy_api(bpy):
+        tree = scene.compositing_node_group
+        if tree is None and create:
+            tree = bpy.data.node_groups.new(f"{scene.name} Compositor", "CompositorNodeTree")
+            scene.compositing_node_group = tree
+        return tree
+    if create:
+        scene.use_nodes = True
+    return scene.node_tree
+
+
+def tree_output(tree):
+    """The node that takes the final image: 5.x a Group Output with an ``Image`` input
+    (the interface socket is added if missing), 4.x the Composite node (added if
+    missing). Its image input is ``node.inputs[0]``."""
+    import bpy
+
+    if not is_legacy_api(bpy):
+        if not any(s.in_out == "OUTPUT" and s.name == "Image" for s in _interface_sockets(tree)):
+            tree.interface.new_socket("Image", in_out="OUTPUT", socket_type="NodeSocketColor")
+        outs = [n for n in tree.nodes if n.bl_idname == "NodeGroupOutput"]
+        node = next((n for n in outs if n.is_active_output), outs[0] if outs else None)
+        return node if node is not None else tree.nodes.new("NodeGroupOutput")
+    node = next((n for n in tree.nodes if n.bl_idname == "CompositorNodeComposite"), None)
+    return node if node is not None else tree.nodes.new("CompositorNodeComposite")
+
+
+#: Node idnames per API: (5.x, 4.2-4.5).
+NODE_IDS = {
+    "math": ("ShaderNodeMath", "CompositorNodeMath"),
+    "separate": ("CompositorNodeSeparateColor", "CompositorNodeSeparateColor"),
+    "combine": ("CompositorNodeCombineColor", "CompositorNodeCombineColor"),
+    "over": ("CompositorNodeAlphaOver", "CompositorNodeAlphaOver"),
+    "bokeh_image": ("CompositorNodeBokehImage", "CompositorNodeBokehImage"),
+    "bokeh_blur": ("CompositorNodeBokehBlur", "CompositorNodeBokehBlur"),
+    "inpaint": ("CompositorNodeInpaint", "CompositorNodeInpaint"),
+    "convolve": ("CompositorNodeConvolve", None),
+    "crop": ("CompositorNodeCrop", "CompositorNodeCrop"),
+    "image_coordinates": ("CompositorNodeImageCoordinates", None),
+    "separate_xyz": ("ShaderNodeSeparateXYZ", None),
+    "group": ("CompositorNodeGroup", "CompositorNodeGroup"),
+    "render_layers": ("CompositorNodeRLayers", "CompositorNodeRLayers"),
+}
+
+
+def node_id(kind: str, legacy: bool) -> str:
+    idname = NODE_IDS[kind][1 if legacy else 0]
+    if idname is None:
+        raise ValueError(f"the {kind} node does not exist in Blender 4.2-4.5")
+    return idname
+
+
+def set_option(node, socket: str, value, prop: str | None = None) -> None:
+    """Set a node option: the input socket ``socket`` (5.x) or else the property
+    ``prop`` (4.x; default: ``socket`` lower-cased with underscores)."""
+    if socket in node.inputs and not node.inputs[socket].is_linked:
+        node.inputs[socket].default_value = value
+    else:
+        setattr(node, prop or socket.lower().replace(" ", "_"), value)
+
+
+def _interface_sockets(tree):
+    return [item for item in tree.interface.items_tree if item.item_type == "SOCKET"]
+
+
+# --------------------------------------------------------------------------------------
+# The group's interface
+
+#: Group inputs: (name, socket type, default, description). Lengths in scene units,
+#: the lens in millimetres.
+INPUTS = (
+    ("Image", "NodeSocketColor", (0.0, 0.0, 0.0, 1.0), "All-in-focus render (Render Layers Image)"),
+    ("Depth", "NodeSocketFloat", 1e10, "Depth pass (Render Layers Depth), scene units"),
+    ("Focus Distance", "NodeSocketFloat", 10.0, "Planar distance in focus, scene units"),
+    ("F-Stop", "NodeSocketFloat", 2.8, "Aperture f-number"),
+    ("Focal Length", "NodeSocketFloat", 50.0, "Lens focal length, mm"),
+    ("Sensor Width", "NodeSocketFloat", 36.0,
+     "Sensor size across the image width for the camera's sensor fit, mm"),
+    ("Resolution X", "NodeSocketFloat", 1920.0, "Rendered image width, pixels"),
+    ("Resolution Y", "NodeSocketFloat", 1080.0, "Rendered image height, pixels"),
+    ("Unit Scale", "NodeSocketFloat", 1.0, "Metres per scene unit"),
+)
+OUTPUTS = (
+    ("Image", "NodeSocketColor", "Refocused image (normalised Eq. 1, alpha 1)"),
+    ("Alpha", "NodeSocketFloat", "Coverage of Eq. 1 (acc_a)"),
+)
+
+#: Smallest normaliser the final division uses (below it the colour is ~0 anyway).
+NORM_FLOOR = 1e-6
+#: The Bokeh Image node's fixed resolution (5.x and 4.x).
+BOKEH_IMAGE_SIZE = 512
+
+
+# --------------------------------------------------------------------------------------
+# Slice placement
+
+
+def place_slices(depth: np.ndarray, blur_parameter: float, tolerance_px: float = 0.5,
+                 max_slices: int = 8, far_limit: float | None = None) -> tuple[np.ndarray, float]:
+    """Slice disparities (far to near) for the depth present in a render.
+
+    The adaptive planes (:func:`mpib_validate.mpi.adaptive_planes` over the disparity
+    intervals that hold content, spaced so that the blur-radius quantisation error is at
+    most the tolerance), with the tolerance doubled (then refined by bisection) until at
+    most ``max_slices`` remain. Returns ``(disparities, tolerance_px_used)``.
+    """
+    from .mpi import adaptive_planes, plane_spacing
+    from .passes import DEFAULT_FAR_LIMIT, _content_intervals, depth_to_disparity
+
+    if max_slices < 1:
+        raise ValueError(f"max_slices must be >= 1, got {max_slices}")
+    D = depth_to_disparity(depth, DEFAULT_FAR_LIMIT if far_limit is None else far_limit)
+
+    def planes(tol):
+        step = plane_spacing(blur_parameter, tol)
+        return adaptive_planes(_content_intervals(D, step), blur_parameter, tol)
+
+    p = planes(tolerance_px)
+    if len(p) <= max_slices:
+        return p, float(tolerance_px)
+    lo, hi = tolerance_px, tolerance_px
+    while len(planes(hi)) > max_slices:
+        lo, hi = hi, hi * 2.0
+    for _ in range(30):  # the smallest tolerance (to 0.1 %) that fits
+        if hi - lo <= 1e-3 * hi:
+            break
+        mid = 0.5 * (lo + hi)
+        if len(planes(mid)) > max_slices:
+            lo = mid
+        else:
+            hi = mid
+    return planes(hi), float(hi)
+
+
+# --------------------------------------------------------------------------------------
+# The description
+
+
+@dataclass(frozen=True)
+class Ref:
+    """Output ``out`` of the node named ``node``."""
+
+    node: str
+    out: int = 0
+
+
+@dataclass(frozen=True)
+class GroupIn:
+    """The group input socket named ``name``."""
+
+    name: str
+
+
+@dataclass(frozen=True)
+class Op:
+    """One node of the graph: its abstract kind, arguments (:class:`Ref`,
+    :class:`GroupIn` or a constant) and static options."""
+
+    name: str
+    kind: str
+    args: tuple = ()
+    params: tuple = ()  # (key, value) pairs
+
+    def param(self, key, default=None):
+        return dict(self.params).get(key, default)
+
+
+#: Abstract kinds: arguments, and what the node computes (images are premultiplied RGBA).
+KINDS = {
+    "math": "(a, b): Math node, params op and clamp (float32, DIVIDE by 0 gives 0)",
+    "separate": "(image,): R, G, B, A",
+    "combine": "(r, g, b, a): an image",
+    "over": "(background, foreground): fg + bg (1 - clamp(fg.a))",
+    "bokeh_disk": "(): round Bokeh Image (512 x 512, Roundness 1)",
+    "bokeh_blur": "(image, bokeh, radius_px): constant-size Bokeh Blur, radius truncated",
+    "disk_kernel": "(radius_px,): K x K kernel clamp(r + 1/2 - |x|, 0, 1), param size K (5.x)",
+    "convolve": "(image, kernel): Convolve, kernel normalised, zero-padded FFT (5.x)",
+    "inpaint": "(image,): Inpaint, param distance (px)",
+}
+
+
+@dataclass(frozen=True)
+class GroupSpec:
+    """What fixes the group's structure (a change regenerates it).
+
+    Attributes:
+        disparities: slice disparities, far to near (1/scene-unit).
+        fill: ``"inpaint"`` (hidden background behind each slice) or ``"off"``.
+        blur: ``"bokeh"`` (Bokeh Blur, both APIs) or ``"convolve"`` (5.x only).
+        fill_px: Inpaint distance per slice (pixels; ignored without fill).
+        kernel_radius_px: half size of the Convolve kernel image (its size is
+            ``2 k + 3``); slice radii above ``k + 1/2`` are cut to that square.
+    """
+
+    disparities: tuple
+    fill: str = "inpaint"
+    blur: str = "bokeh"
+    fill_px: tuple = ()
+    kernel_radius_px: int = 0
+
+    def __post_init__(self):
+        d = tuple(float(x) for x in self.disparities)
+        if not d:
+            raise ValueError("a node group needs at least one slice")
+        if any(b <= a for a, b in zip(d, d[1:])):
+            raise ValueError(f"slice disparities must increase (far to near): {d}")
+        if self.fill not in ("inpaint", "off"):
+            raise ValueError(f"fill must be 'inpaint' or 'off', got {self.fill!r}")
+        if self.blur not in ("bokeh", "convolve"):
+            raise ValueError(f"blur must be 'bokeh' or 'convolve', got {self.blur!r}")
+        object.__setattr__(self, "disparities", d)
+        fill = tuple(int(v) for v in self.fill_px) or (0,) * len(d)
+        if len(fill) != len(d):
+            raise ValueError(f"{len(fill)} fill distances for {len(d)} slices")
+        object.__setattr__(self, "fill_px", fill)
+
+
+def fill_distances(disparities, blur_parameter: float, cap: int = 256) -> tuple:
+    """Inpaint distance per slice: ``ceil(A (d_max - d_i)) + 1`` px (the largest parallax
+    between the slice and the nearest content), at most ``cap``."""
+    d = np.asarray(disparities, np.float64)
+    return tuple(int(min(cap, math.ceil(blur_parameter * (d[-1] - x)) + 1)) for x in d)
+
+
+def spec_from_render(depth: np.ndarray, blur_parameter: float, *, max_slices: int = 8,
+                     tolerance_px: float = 0.5, fill: str = "inpaint", blur: str = "bokeh",
+                     max_radius_px: float | None = None) -> GroupSpec:
+    """The structure for a render's depth: slices by :func:`place_slices`, fill
+    distances by :func:`fill_distances`, and (Convolve) a kernel large enough for
+    ``max_radius_px`` (default: the largest radius any focus within the slices gives)."""
+    d, _ = place_slices(depth, blur_parameter, tolerance_px, max_slices)
+    if max_radius_px is None:
+        max_radius_px = blur_parameter * float(d[-1] - d[0])
+    k = int(math.ceil(max_radius_px)) + 1 if blur == "convolve" else 0
+    return GroupSpec(tuple(d), fill, blur, fill_distances(d, blur_parameter), k)
+
+
+class _Builder:
+    def __init__(self):
+        self.ops: list[Op] = []
+
+    def add(self, name, kind, *args, **params) -> Ref:
+        self.ops.append(Op(name, kind, tuple(args), tuple(sorted(params.items()))))
+        return Ref(name)
+
+    def math(self, name, op, a, b=0.0, clamp=False) -> Ref:
+        return self.add(name, "math", a, b, op=op, clamp=bool(clamp))
+
+
+@dataclass(frozen=True)
+class Graph:
+    spec: GroupSpec
+    ops: tuple
+    outputs: tuple  # (group output name, Ref)
+
+
+def describe(spec: GroupSpec) -> Graph:
+    """The node graph of :class:`GroupSpec` as data (see the module docstring)."""
+    g = _Builder()
+    d = spec.disparities
+    n = len(d)
+    # 1. blur parameter and focus
+    fl = GroupIn("Focal Length")
+    t1 = g.math("lens_m", "MULTIPLY", fl, 1e-3)
+    t2 = g.math("unit_x2", "MULTIPLY", GroupIn("Unit Scale"), 2.0)
+    t3 = g.math("unit_x2N", "MULTIPLY", t2, GroupIn("F-Stop"))
+    R = g.math("aperture_radius", "DIVIDE", t1, t3)
+    t4 = g.math("lens_per_sensor", "DIVIDE", fl, GroupIn("Sensor Width"))
+    fpx = g.math("focal_px", "MULTIPLY", t4, GroupIn("Resolution X"))
+    A = g.math("blur_parameter", "MULTIPLY", R, fpx)
+    df = g.math("focus_disparity", "DIVIDE", 1.0, GroupIn("Focus Distance"))
+    radius = []
+    for i, di in enumerate(d):
+        e = g.math(f"s{i}.offset", "SUBTRACT", di, df)
+        ab = g.math(f"s{i}.abs", "ABSOLUTE", e)
+        radius.append(g.math(f"s{i}.radius", "MULTIPLY", A, ab))
+    # 2. disparity, the split between slices
+    img = g.add("image", "separate", GroupIn("Image"))
+    ch = [Ref("image", k) for k in range(4)]
+    alpha = ch[3]
+    disp = g.math("disparity", "DIVIDE", 1.0, GroupIn("Depth"))
+    u, lt, ge = {}, {}, {}
+    for k in range(n - 1):
+        off = g.math(f"u{k}.offset", "SUBTRACT", disp, d[k])
+        u[k] = g.math(f"u{k}", "MULTIPLY", off, 1.0 / (d[k + 1] - d[k]), clamp=True)
+    for k in range(1, n):
+        lt[k] = g.math(f"lt{k}", "LESS_THAN", disp, d[k])  # d < d_k
+        ge[k] = g.math(f"ge{k}", "SUBTRACT", 1.0, lt[k])  # d >= d_k
+
+    def scaled(name, image_channels, factor):
+        parts = [g.math(f"{name}.{c}", "MULTIPLY", image_channels[j], factor)
+                 for j, c in enumerate("rgba")]
+        return g.add(name, "combine", *parts)
+
+    bokeh = g.add("bokeh", "bokeh_disk") if spec.blur == "bokeh" else None
+    acc = None
+    for i in range(n):
+        parts = []
+        if i >= 1:  # near role: u_{i-1} on [d_{i-1}, d_i)
+            parts.append(u[i - 1] if i == n - 1 else
+                         g.math(f"s{i}.near", "MULTIPLY", u[i - 1], lt[i]))
+        if i <= n - 2:  # far role: (1 - u_i) / (1 - u_i alpha) on [d_i, d_{i+1})
+            one_u = g.math(f"s{i}.1-u", "SUBTRACT", 1.0, u[i])
+            ua = g.math(f"s{i}.u*a", "MULTIPLY", u[i], alpha)
+            den = g.math(f"s{i}.1-ua", "SUBTRACT", 1.0, ua)
+            far = g.math(f"s{i}.far", "DIVIDE", one_u, den)
+            parts.append(far if i == 0 else g.math(f"s{i}.far_in", "MULTIPLY", far, ge[i]))
+        if not parts:
+            factor = 1.0
+        elif len(parts) == 1:
+            factor = parts[0]
+        else:
+            factor = g.math(f"s{i}.factor", "ADD", parts[0], parts[1])
+        layer = scaled(f"s{i}.layer", ch, factor)
+        # 3. hidden background: slice i's own pixels extended under nearer content
+        if spec.fill == "inpaint" and i <= n - 2 and spec.fill_px[i] > 0:
+            own = lt[1] if i == 0 else g.math(f"s{i}.own", "MULTIPLY", ge[i], lt[i + 1])
+            src = scaled(f"s{i}.fill_src", ch, own)
+            filled = g.add(f"s{i}.inpaint", "inpaint", src, distance=int(spec.fill_px[i]))
+            g.add(f"s{i}.filled", "separate", filled)
+            fill = scaled(f"s{i}.fill", [Ref(f"s{i}.filled", k) for k in range(4)], ge[i + 1])
+            layer = g.add(f"s{i}.with_fill", "over", fill, layer)
+        # 4. the disk blur
+        if spec.blur == "bokeh":
+            blurred = g.add(f"s{i}.blur", "bokeh_blur", layer, bokeh, radius[i])
+        else:
+            kern = g.add(f"s{i}.kernel", "disk_kernel", radius[i],
+                         size=2 * int(spec.kernel_radius_px) + 3)
+            blurred = g.add(f"s{i}.blur", "convolve", layer, kern)
+        # 5. Eq. 1, far to near
+        acc = blurred if acc is None else g.add(f"acc{i}", "over", acc, blurred)
+    g.add("acc", "separate", acc)
+    a_acc = Ref("acc", 3)
+    den = g.math("norm", "MAXIMUM", a_acc, NORM_FLOOR)
+    rgb = []
+    for k, c in enumerate("rgb"):
+        q = g.math(f"out.{c}/a", "DIVIDE", Ref("acc", k), den)
+        rgb.append(g.math(f"out.{c}", "MAXIMUM", q, 0.0))
+    out = g.add("out", "combine", *rgb, 1.0)
+    cov = g.math("coverage", "MAXIMUM", a_acc, 0.0, clamp=True)
+    return Graph(spec, tuple(g.ops), (("Image", out), ("Alpha", cov)))
+
+
+# --------------------------------------------------------------------------------------
+# The numpy model of the same nodes
+
+_F = np.float32
+
+
+def _math(op: str, a, b, clamp: bool):
+    a = np.asarray(a, _F)
+    b = np.asarray(b, _F)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        if op == "ADD":
+            r = a + b
+        elif op == "SUBTRACT":
+            r = a - b
+        elif op == "MULTIPLY":
+            r = a * b
+        elif op == "DIVIDE":
+            r = np.where(b == 0, _F(0), a / np.where(b == 0, _F(1), b))
+        elif op == "ABSOLUTE":
+            r = np.abs(a)
+        elif op == "LESS_THAN":
+            r = (a < b).astype(_F)
+        elif op == "GREATER_THAN":
+            r = (a > b).astype(_F)
+        elif op == "MAXIMUM":
+            r = np.maximum(a, b)
+        elif op == "MINIMUM":
+            r = np.minimum(a, b)
+        elif op == "SQRT":
+            r = np.where(a > 0, np.sqrt(np.maximum(a, 0)), _F(0))
+        elif op == "FLOOR":
+            r = np.floor(a)
+        else:
+            raise ValueError(f"math op {op!r} is not modelled")
+    r = np.asarray(r, _F)
+    return np.clip(r, _F(0), _F(1)) if clamp else r
+
+
+def bokeh_disk_image(size: int = BOKEH_IMAGE_SIZE, legacy: bool = False) -> np.ndarray:
+    """The round Bokeh Image (Roundness 1, no catadioptric, no shift), one channel
+    ``(size, size)`` with row 0 at the bottom: 1 inside the circle of radius ``size/2``,
+    ``R - dist`` within a pixel of its edge, 0 outside. 5.x measures from texel centres
+    (``texel + 1/2``), 4.x from texel corners."""
+    R = _F(size / 2.0)
+    t = np.arange(size, dtype=_F) + (_F(0) if legacy else _F(0.5)) - R
+    dist = np.sqrt(t[None, :] ** 2 + t[:, None] ** 2).astype(_F)
+    v = np.where(dist > R, _F(0), np.where(R - dist < 1, R - dist, _F(1)))
+    return v.astype(_F)
+
+
+def _sample_bilinear_extended(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Blender's ``sample_bilinear_extended``: normalised coordinates ``(u, v)`` (grids),
+    texel coordinates ``u W - 1/2``, bilinear, edges clamped. ``img`` rows bottom-up."""
+    h, w = img.shape
+    x = u * w - _F(0.5)
+    y = v * h - _F(0.5)
+    x0 = np.floor(x).astype(np.int64)
+    y0 = np.floor(y).astype(np.int64)
+    fx = (x - x0).astype(_F)
+    fy = (y - y0).astype(_F)
+
+    def at(yy, xx):
+        return img[np.clip(yy, 0, h - 1), np.clip(xx, 0, w - 1)]
+
+    top = at(y0, x0) * (1 - fx) + at(y0, x0 + 1) * fx
+    bot = at(y0 + 1, x0) * (1 - fx) + at(y0 + 1, x0 + 1) * fx
+    return (top * (1 - fy) + bot * fy).astype(_F)
+
+
+def bokeh_blur_kernel(radius: int, legacy: bool = False) -> tuple[np.ndarray, int, float]:
+    """The weights Bokeh Blur uses at integer ``radius`` with the round Bokeh Image, as a
+    correlation kernel over offsets (rows top-down). Returns ``(kernel, reach,
+    centre_extra)``: ``kernel`` of shape ``(2 reach + 1)^2`` (offset ``(dy, dx)`` at
+    ``[reach + dy, reach + dx]``), and the extra weight 4.x adds to the centre pixel.
+
+    5.x: ``(2 s + 1)^2`` taps, tap ``t`` samples the Bokeh Image bilinearly at
+    ``1 - (t + 1/2) / (2 s + 1)`` (a disk of radius about ``s + 1/2``).
+    4.x: ``pixel_size = s``, offsets ``-s .. s - 1`` in Blender's axes (x right, y up),
+    nearest texel at ``256 - offset * 256 / s``; when ``s < 2`` the centre pixel gets an
+    extra weight 1."""
+    s = int(radius)
+    if s <= 0:
+        return np.ones((1, 1), _F), 0, 0.0
+    if not legacy:
+        n = 2 * s + 1
+        t = np.arange(n, dtype=_F)
+        c = _F(1) - (t + _F(0.5)) / _F(n)
+        img = bokeh_disk_image()
+        # kernel texel (tx, ty) -> weight for offset (tx - s, ty - s) in Blender axes (y up)
+        k_up = _sample_bilinear_extended(img, c[None, :], c[:, None])
+        return np.ascontiguousarray(k_up[::-1]), s, 0.0
+    img = bokeh_disk_image(legacy=True)
+    m = _F(BOKEH_IMAGE_SIZE / 2.0) / _F(s)
+    offs = np.arange(-s, s, dtype=_F)  # Blender offsets -s .. s-1
+    coord = (_F(BOKEH_IMAGE_SIZE / 2.0) - offs * m).astype(_F)
+    idx = np.floor(coord).astype(np.int64)
+    ok = (idx >= 0) & (idx < BOKEH_IMAGE_SIZE)
+    w1 = np.where(ok, 1, 0)
+    idxc = np.clip(idx, 0, BOKEH_IMAGE_SIZE - 1)
+    k_up = img[idxc[:, None], idxc[None, :]] * (w1[:, None] * w1[None, :])  # [y offset, x offset]
+    # place into a symmetric (2s+1)^2 frame: Blender offset o -> index s + o; rows top-down
+    # so the y offset o (up) is row s - o
+    kern = np.zeros((2 * s + 1, 2 * s + 1), _F)
+    for iy, oy in enumerate(range(-s, s)):
+        kern[s - oy, 0:2 * s] = k_up[iy]
+    return kern, s, 1.0 if s < 2 else 0.0
+
+
+def legacy_pixel_size(radius, largest_side) -> int:
+    """The radius 4.x's Bokeh Blur uses for the Size the 4.x emission passes:
+    ``(floor(r) + 1/2) 100 / M`` percent, clamped to [0, 10], times ``M / 100``,
+    truncated (float32 as Blender)."""
+    M = _F(largest_side)
+    pct = (np.floor(_F(radius)) + _F(0.5)) * _F(100) / M
+    pct = min(max(pct, _F(0)), _F(10))
+    return int(_F(pct) * M / _F(100))
+
+
+def _bokeh_blur(image: np.ndarray, radius, legacy: bool, largest_side=None) -> np.ndarray:
+    from scipy import ndimage
+
+    if legacy:
+        s = legacy_pixel_size(radius, largest_side)
+    else:
+        s = int(np.floor(np.asarray(radius, _F)))  # the node truncates (radius >= 0)
+    if s <= 0:
+        return image.astype(_F)
+    kern, reach, extra = bokeh_blur_kernel(s, legacy)
+    img = image.astype(np.float64)
+    H, W = img.shape[:2]
+    if not legacy:  # extended borders, every tap counts
+        num = np.stack([ndimage.correlate(img[..., c], kern.astype(np.float64), mode="nearest")
+                        for c in range(img.shape[2])], axis=-1)
+        return (num / float(kern.sum(dtype=np.float64))).astype(_F)
+    # 4.x: the window is clipped to the image and normalised by the weights it used
+    k = kern.astype(np.float64)
+    ones = np.ones((H, W))
+    den = ndimage.correlate(ones, k, mode="constant") + extra
+    num = np.stack([ndimage.correlate(img[..., c], k, mode="constant") + extra * img[..., c]
+                    for c in range(img.shape[2])], axis=-1)
+    return (num / den[..., None]).astype(_F)
+
+
+def disk_kernel(radius, size: int) -> np.ndarray:
+    """The Convolve kernel built from nodes: ``clamp(r + 1/2 - |x - c|, 0, 1)`` on a
+    ``size x size`` image, ``c = size // 2`` (float32, as the nodes compute it)."""
+    r = np.asarray(radius, _F)
+    t = np.arange(size, dtype=_F) - _F(size // 2)
+    dist = np.sqrt((t[None, :] * t[None, :] + t[:, None] * t[:, None]).astype(_F)).astype(_F)
+    return np.clip((r + _F(0.5)) - dist, _F(0), _F(1)).astype(_F)
+
+
+def _convolve(image: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """Convolve (5.x): zero-padded convolution with the kernel divided by its sum."""
+    from scipy.signal import fftconvolve
+
+    k = kernel.astype(np.float64)
+    s = k.sum()
+    k = k / (s if s != 0 else 1.0)
+    out = np.stack([fftconvolve(image[..., c].astype(np.float64), k, mode="same")
+                    for c in range(image.shape[2])], axis=-1)
+    return out.astype(_F)
+
+
+def _gauss_weights(max_distance: int) -> np.ndarray:
+    """Inpaint's smoothing weights: Blender's Gaussian filter at ``i / D``, i = 0..D,
+    normalised over the symmetric filter."""
+    gf = _F(1.6)
+    two = _F(2) * gf * gf
+    x = np.arange(max_distance + 1, dtype=_F) * _F(1.0 / max_distance if max_distance else 0)
+    x = x * (_F(3) * gf)
+    w = (_F(1) / np.sqrt(_F(np.pi) * two) * np.exp(-x * x / two)).astype(_F)
+    s = w[0] + 2 * w[1:].sum(dtype=_F)
+    return (w / s).astype(_F)
+
+
+def _jump_flood(seed: np.ndarray) -> np.ndarray:
+    """Jump flooding (1+JFA) as Blender runs it: for each pixel the (x, y) of a nearby
+    seed, (-1, -1) where none. ``seed`` is boolean, rows bottom-up."""
+    H, W = seed.shape
+    yy, xx = np.mgrid[:H, :W]
+    cur = np.where(seed[..., None], np.stack([xx, yy], -1), -1).astype(np.int64)
+    steps = [1]
+    s = 1 << max(0, (max(H, W) - 1).bit_length())  # power of 2 >= max side
+    s //= 2
+    while s:
+        steps.append(s)
+        s //= 2
+    for step in steps:
+        best = np.full((H, W), np.inf, np.float32)
+        out = np.zeros((H, W, 2), np.int64)
+        for j in (-1, 0, 1):
+            for i in (-1, 0, 1):
+                ny, nx = yy + j * step, xx + i * step
+                inside = (ny >= 0) & (ny < H) & (nx >= 0) & (nx < W)
+                val = cur[np.clip(ny, 0, H - 1), np.clip(nx, 0, W - 1)]
+                ok = inside & (val[..., 0] != -1)
+                dx = (val[..., 0] - xx).astype(np.float32)
+                dy = (val[..., 1] - yy).astype(np.float32)
+                d2 = dx * dx + dy * dy
+                better = ok & (d2 < best)
+                best = np.where(better, d2, best)
+                out = np.where(better[..., None], val, out)
+        cur = np.where(np.isfinite(best)[..., None], out, -1)
+    return cur
+
+
+def _inpaint(image: np.ndarray, distance: int) -> np.ndarray:
+    """Inpaint (5.x CPU): fill non-opaque pixels within ``distance`` px of the opaque
+    region from the nearest boundary pixel (jump flooding), smoothed by a separable
+    Gaussian of radius ``min(D, dist) / sqrt 2``; output alpha 1 there."""
+    D = int(distance)
+    if D <= 0:
+        return image.astype(_F)
+    img = image.astype(_F)[::-1]  # rows bottom-up, as Blender's texel y
+    H, W = img.shape[:2]
+    a = img[..., 3]
+    opaque = a == 1.0
+    pad = np.pad(a, 1, mode="edge")
+    trans_nb = np.zeros((H, W), bool)
+    for j in (-1, 0, 1):
+        for i in (-1, 0, 1):
+            if i or j:
+                trans_nb |= pad[1 + j:1 + j + H, 1 + i:1 + i + W] < 1.0
+    flood = _jump_flood(opaque & trans_nb)
+    yy, xx = np.mgrid[:H, :W]
+    dx = (xx - flood[..., 0]).astype(_F)
+    dy = (yy - flood[..., 1]).astype(_F)
+    dist = np.sqrt(dx * dx + dy * dy).astype(_F)
+    bcol = img[np.clip(flood[..., 1], 0, H - 1), np.clip(flood[..., 0], 0, W - 1)]
+    filled = bcol * (1 - a[..., None]) + img * a[..., None]
+    filled = np.where(opaque[..., None], img, filled).astype(_F)
+    # Blender divides the float by the double constant sqrt(2): the quotient is rounded
+    # once, from double (this decides int(radius) where it is near an integer)
+    radius = (np.minimum(_F(D), dist).astype(np.float64) / math.sqrt(2.0)).astype(_F)
+    radius = np.where(opaque | (dist > _F(D * 2.0)), _F(0), radius).astype(_F)
+    dist = np.where(opaque, _F(0), dist)
+    w = _gauss_weights(D)
+    smoothed = _variable_blur(_variable_blur(filled, radius, w, axis=1), radius, w, axis=0)
+    keep = opaque | (dist > _F(D))
+    mixed = smoothed[..., :3] * (1 - a[..., None]) + img[..., :3] * a[..., None]
+    out = np.concatenate([mixed, np.ones((H, W, 1), _F)], -1)
+    out = np.where(keep[..., None], img, out).astype(_F)
+    return out[::-1]
+
+
+def _variable_blur(img: np.ndarray, radius: np.ndarray, weights: np.ndarray, axis: int):
+    """One pass of Blender's symmetric separable variable-size blur along ``axis``: each
+    pixel gathers ``int(radius)`` taps each side with weights sampled bilinearly from
+    ``weights`` at ``(i + 1/2) / (r + 1)``, divided by their sum; edges extended."""
+    r = radius.astype(_F).astype(np.int64)
+    n = len(weights)
+    acc = img * weights[0]
+    wsum = np.full(r.shape, weights[0], _F)
+    L = img.shape[axis]
+    idx = np.arange(L)
+    for i in range(1, int(r.max(initial=0)) + 1):
+        active = r >= i
+        if not active.any():
+            continue
+        # weight for tap i at radius r (per pixel)
+        x = (_F(i) + _F(0.5)) / (r.astype(_F) + 1) * _F(n) - _F(0.5)
+        x0 = np.floor(x).astype(np.int64)
+        f = (x - x0).astype(_F)
+        wv = (weights[np.clip(x0, 0, n - 1)] * (1 - f) + weights[np.clip(x0 + 1, 0, n - 1)] * f)
+        wv = np.where(active, wv, _F(0)).astype(_F)
+        plus = np.take(img, np.minimum(idx + i, L - 1), axis=axis)
+        minus = np.take(img, np.maximum(idx - i, 0), axis=axis)
+        acc = acc + (plus + minus) * wv[..., None]
+        wsum = wsum + wv * 2
+    return (acc / wsum[..., None]).astype(_F)
+
+
+def evaluate(graph: Graph, image: np.ndarray, depth: np.ndarray, values: dict,
+             legacy: bool = False, keep: bool = False) -> dict:
+    """Run the numpy model of ``graph``.
+
+    Args:
+        image: ``(H, W, 4)`` premultiplied linear RGBA (rows top-down), the Image input.
+        depth: ``(H, W)`` Depth pass (scene units).
+        values: the scalar group inputs by name (defaults from :data:`INPUTS`).
+        legacy: model the 4.2-4.5 nodes (Bokeh Blur); the 4.x Inpaint is not modelled.
+        keep: also return every node's value under ``"nodes"``.
+
+    Returns:
+        ``{"Image": (H, W, 4), "Alpha": (H, W)}`` float32 (plus ``"nodes"``).
+    """
+    inputs = {name: default for name, _, default, _ in INPUTS}
+    inputs.update(values)
+    inputs["Image"] = np.asarray(image, _F)
+    inputs["Depth"] = np.asarray(depth, _F)
+    H, W = inputs["Depth"].shape
+    vals: dict = {}
+
+    def get(arg):
+        if isinstance(arg, Ref):
+            v = vals[arg.node]
+            return v[arg.out] if isinstance(v, tuple) else v
+        if isinstance(arg, GroupIn):
+            return np.asarray(inputs[arg.name], _F)
+        return np.asarray(arg, _F)
+
+    for op in graph.ops:
+        a = [get(x) for x in op.args]
+        k = op.kind
+        if k == "math":
+            v = _math(op.param("op"), a[0], a[1], op.param("clamp", False))
+        elif k == "separate":
+            v = tuple(a[0][..., c] for c in range(4))
+        elif k == "combine":
+            v = np.stack([np.broadcast_to(x, (H, W)) for x in a], -1).astype(_F)
+        elif k == "over":
+            bg, fg = (np.broadcast_to(x, (H, W, 4)) for x in a)
+            v = (fg + bg * (1 - np.clip(fg[..., 3:4], 0, 1))).astype(_F)
+        elif k == "bokeh_disk":
+            v = None
+        elif k == "bokeh_blur":
+            v = _bokeh_blur(a[0], a[2], legacy, max(float(inputs["Resolution X"]),
+                                                    float(inputs["Resolution Y"])))
+        elif k == "disk_kernel":
+            if legacy:
+                raise ValueError("the Convolve path exists in Blender 5.x only")
+            v = disk_kernel(a[0], op.param("size"))
+        elif k == "convolve":
+            v = _convolve(a[0], a[1])
+        elif k == "inpaint":
+            if legacy:
+                raise NotImplementedError("the 4.x Inpaint node's algorithm is not modelled")
+            v = _inpaint(a[0], op.param("distance"))
+        else:
+            raise ValueError(f"unknown node kind {k!r}")
+        vals[op.name] = v
+    out = {name: np.asarray(get(ref), _F) for name, ref in graph.outputs}
+    if keep:
+        out["nodes"] = vals
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# Emission into Blender (5.x or 4.2-4.5 API)
+
+
+class _Emitter:
+    """Turns the ops of a :class:`Graph` into nodes of ``tree`` for one API."""
+
+    def __init__(self, tree, legacy: bool):
+        self.tree = tree
+        self.legacy = legacy
+        self.nodes = {}  # op name -> node
+        self.shared = {}
+        self.gin = tree.nodes.new("NodeGroupInput")
+        self.gin.location = (-400, 0)
+        self.column = {}
+
+    def new(self, kind, label, slot=None):
+        n = self.tree.nodes.new(node_id(kind, self.legacy))
+        n.name = n.label = label
+        row = slot if slot is not None else 0
+        col = self.column.get(row, 0)
+        self.column[row] = col + 1
+        n.location = (col * 180.0, -row * 900.0)
+        n.hide = kind == "math"
+        return n
+
+    def socket(self, arg):
+        """The output socket an argument comes from, or None for a constant."""
+        if isinstance(arg, Ref):
+            return self.nodes[arg.node].outputs[arg.out]
+        if isinstance(arg, GroupIn):
+            return self.gin.outputs[arg.name]
+        return None
+
+    def feed(self, dst, arg):
+        src = self.socket(arg)
+        if src is None:
+            dst.default_value = float(arg) if dst.type == "VALUE" else arg
+        else:
+            self.tree.links.new(src, dst)
+
+    def math(self, label, op, a, b=0.0, clamp=False, slot=None):
+        n = self.new("math", label, slot)
+        n.operation = op
+        n.use_clamp = bool(clamp)
+        for sock, arg in zip(n.inputs, (a, b)):
+            if isinstance(arg, (Ref, GroupIn)):
+                self.tree.links.new(self.socket(arg), sock)
+            elif hasattr(arg, "bl_idname"):  # a node socket already
+                self.tree.links.new(arg, sock)
+            else:
+                sock.default_value = float(arg)
+        return n
+
+    def emit(self, op: Op):
+        slot = int(op.name[1:op.name.index(".")]) + 1 if op.name.startswith("s") and "." in op.name else 0
+        k, L = op.kind, self.legacy
+        if k == "math":
+            n = self.math(op.name, op.param("op"), *op.args, clamp=op.param("clamp", False), slot=slot)
+        elif k == "separate":
+            n = self.new("separate", op.name, slot)
+            self.feed(n.inputs[0], op.args[0])
+        elif k == "combine":
+            n = self.new("combine", op.name, slot)
+            for sock, arg in zip(n.inputs, op.args):
+                self.feed(sock, arg)
+        elif k == "over":
+            n = self.new("over", op.name, slot)
+            if L:
+                n.use_premultiply = False
+                n.premul = 0.0
+                n.inputs[0].default_value = 1.0
+                self.feed(n.inputs[1], op.args[0])
+                self.feed(n.inputs[2], op.args[1])
+            else:
+                self.feed(n.inputs["Background"], op.args[0])
+                self.feed(n.inputs["Foreground"], op.args[1])
+        elif k == "bokeh_disk":
+            n = self.new("bokeh_image", op.name, slot)
+            set_option(n, "Roundness", 1.0, "rounding")
+            set_option(n, "Catadioptric Size", 0.0, "catadioptric")
+            set_option(n, "Color Shift", 0.0, "shift")
+            set_option(n, "Angle", 0.0)
+        elif k == "bokeh_blur":
+            n = self.new("bokeh_blur", op.name, slot)
+            self.feed(n.inputs["Image"], op.args[0])
+            self.feed(n.inputs["Bokeh"], op.args[1])
+            if L:
+                # 4.x: Size in percent of the larger side, converted back with truncation:
+                # pass (floor(r) + 1/2) so that the conversion lands inside the same pixel
+                n.use_variable_size = False
+                n.use_extended_bounds = False
+                f = self.math(op.name + ".floor", "FLOOR", op.args[2], slot=slot)
+                h = self.math(op.name + ".half", "ADD", f.outputs[0], 0.5, slot=slot)
+                side = self.shared.get("side")
+                if side is None:
+                    side = self.shared["side"] = self.math(
+                        "largest_side", "MAXIMUM", GroupIn("Resolution X"), GroupIn("Resolution Y"))
+                p = self.math(op.name + ".x100", "MULTIPLY", h.outputs[0], 100.0, slot=slot)
+                pct = self.math(op.name + ".percent", "DIVIDE", p.outputs[0], side.outputs[0], slot=slot)
+                self.tree.links.new(pct.outputs[0], n.inputs["Size"])
+            else:
+                self.feed(n.inputs["Size"], op.args[2])
+        elif k == "disk_kernel":
+            dist = self._kernel_distance(op.param("size"))
+            rp = self.math(op.name + ".r+0.5", "ADD", op.args[0], 0.5, slot=slot)
+            n = self.math(op.name, "SUBTRACT", rp.outputs[0], dist.outputs[0], clamp=True, slot=slot)
+        elif k == "convolve":
+            n = self.new("convolve", op.name, slot)
+            self.feed(n.inputs["Image"], op.args[0])
+            n.inputs["Kernel Data Type"].default_value = "Float"
+            self.tree.links.new(self.socket(op.args[1]), n.inputs["Float Kernel"])
+            n.inputs["Normalize Kernel"].default_value = True
+        elif k == "inpaint":
+            n = self.new("inpaint", op.name, slot)
+            self.feed(n.inputs["Image"], op.args[0])
+            set_option(n, "Size", int(op.param("distance")), "distance")
+        else:
+            raise ValueError(f"unknown node kind {k!r}")
+        self.nodes[op.name] = n
+
+    def _kernel_distance(self, size: int):
+        """|x - c| on a size x size image, shared by every slice's kernel (5.x): the Bokeh
+        Image cropped to ``size`` gives the domain, Image Coordinates the pixel indices."""
+        key = ("distance", size)
+        if key in self.shared:
+            return self.shared[key]
+        if not 1 <= size <= BOKEH_IMAGE_SIZE:
+            raise ValueError(f"the Convolve kernel must be 1..{BOKEH_IMAGE_SIZE} px, got {size}")
+        src = self.new("bokeh_image", "kernel_domain")
+        crop = self.new("crop", "kernel_crop")
+        self.tree.links.new(src.outputs[0], crop.inputs["Image"])
+        for name, v in (("X", 0), ("Y", 0), ("Width", size), ("Height", size)):
+            crop.inputs[name].default_value = v
+        crop.inputs["Alpha Crop"].default_value = False
+        coords = self.new("image_coordinates", "kernel_coordinates")
+        self.tree.links.new(crop.outputs[0], coords.inputs["Image"])
+        xyz = self.new("separate_xyz", "kernel_xy")
+        self.tree.links.new(coords.outputs["Pixel"], xyz.inputs[0])
+        c = float(size // 2)
+        dx = self.math("kernel_dx", "SUBTRACT", xyz.outputs[0], c)
+        dy = self.math("kernel_dy", "SUBTRACT", xyz.outputs[1], c)
+        dx2 = self.math("kernel_dx2", "MULTIPLY", dx.outputs[0], dx.outputs[0])
+        dy2 = self.math("kernel_dy2", "MULTIPLY", dy.outputs[0], dy.outputs[0])
+        s = self.math("kernel_r2", "ADD", dx2.outputs[0], dy2.outputs[0])
+        dist = self.math("kernel_distance", "SQRT", s.outputs[0])
+        self.shared[key] = dist
+        return dist
+
+
+def _ensure_interface(group) -> None:
+    """Give ``group`` exactly the sockets of :data:`INPUTS` and :data:`OUTPUTS`; kept as
+    they are when they already match (so links, values and drivers on group nodes stay)."""
+    want = [(n, "INPUT", t) for n, t, _, _ in INPUTS] + [(n, "OUTPUT", t) for n, t, _ in OUTPUTS]
+    have = [(s.name, s.in_out, s.socket_type) for s in _interface_sockets(group)]
+    if sorted(have) == sorted(want):
+        return
+    group.interface.clear()
+    for name, stype, default, desc in INPUTS:
+        s = group.interface.new_socket(name, in_out="INPUT", socket_type=stype, description=desc)
+        s.default_value = default
+        if stype == "NodeSocketFloat" and name not in ("Depth",):
+            s.min_value = 0.0
+    for name, stype, desc in OUTPUTS:
+        group.interface.new_socket(name, in_out="OUTPUT", socket_type=stype, description=desc)
+
+
+def build_group(graph: Graph, group=None, name: str = GROUP_NAME):
+    """Emit ``graph`` as a compositor node group for the running Blender's API.
+
+    ``group``: an existing group to regenerate in place (its nodes are replaced, its
+    interface kept if it matches, so group nodes using it keep their links, values and
+    drivers); default a new group named ``name``. Returns the group. Its structure is
+    stored in the group's custom property ``mpib_spec`` (for :func:`spec_of`)."""
+    import json
+
+    import bpy
+
+    legacy = is_legacy_api(bpy)
+    if graph.spec.blur == "convolve" and legacy:
+        raise ValueError("blur 'convolve' needs Blender 5.0 or later (no Convolve node before)")
+    if group is None:
+        group = bpy.data.node_groups.new(name, "CompositorNodeTree")
+    group.nodes.clear()
+    _ensure_interface(group)
+    em = _Emitter(group, legacy)
+    for op in graph.ops:
+        em.emit(op)
+    gout = group.nodes.new("NodeGroupOutput")
+    gout.location = (em.column.get(0, 0) * 180.0 + 200, 0)
+    for out_name, ref in graph.outputs:
+        group.links.new(em.nodes[ref.node].outputs[ref.out], gout.inputs[out_name])
+    s = graph.spec
+    group["mpib_spec"] = json.dumps({"disparities": list(s.disparities), "fill": s.fill,
+                                     "blur": s.blur, "fill_px": list(s.fill_px),
+                                     "kernel_radius_px": s.kernel_radius_px})
+    return group
+
+
+def spec_of(group) -> GroupSpec | None:
+    """The :class:`GroupSpec` a group was built from (None if it is not one of ours)."""
+    import json
+
+    raw = group.get("mpib_spec") if group is not None else None
+    if not raw:
+        return None
+    d = json.loads(raw)
+    return GroupSpec(tuple(d["disparities"]), d["fill"], d["blur"], tuple(d["fill_px"]),
+                     int(d["kernel_radius_px"]))
+
+
+def install(scene, group, node_name: str = GROUP_NAME):
+    """Wire the group between Render Layers (Image, Depth) and the compositor output of
+    ``scene`` (created as needed), enabling the Depth pass. Reuses a group node named
+    ``node_name`` if there is one. Returns the group node."""
+    import bpy
+
+    legacy = is_legacy_api(bpy)
+    tree = compositor_tree(scene, create=True)
+    for vl in scene.view_layers:
+        vl.use_pass_z = True
+    rl = next((n for n in tree.nodes if n.bl_idname == "CompositorNodeRLayers"), None)
+    if rl is None:
+        rl = tree.nodes.new("CompositorNodeRLayers")
+        rl.location = (-400, 0)
+    out = tree_output(tree)
+    node = tree.nodes.get(node_name)
+    if node is None or node.bl_idname != "CompositorNodeGroup":
+        node = tree.nodes.new(node_id("group", legacy))
+        node.name = node_name
+        node.location = (rl.location[0] + 300, rl.location[1])
+    node.node_tree = group
+    node.label = group.name
+    node.width = 220
+    tree.links.new(rl.outputs["Image"], node.inputs["Image"])
+    tree.links.new(rl.outputs["Depth"], node.inputs["Depth"])
+    tree.links.new(node.outputs["Image"], out.inputs[0])
+    out.location = (node.location[0] + 300, node.location[1])
+    return node
+
+
+# --------------------------------------------------------------------------------------
+# Running the group headless on given passes (tests and measurements)
+
+
+def _write_passes(folder, image: np.ndarray, depth: np.ndarray) -> tuple[str, str]:
+    """Two EXR files an Image node reads exactly: the RGBA image, and the depth in R, G, B."""
+    import os
+
+    from .exr import channels_from_rgba, write_exr
+
+    d = np.asarray(depth, np.float32)
+    paths = (os.path.join(folder, "image.exr"), os.path.join(folder, "depth.exr"))
+    write_exr(paths[0], channels_from_rgba(np.asarray(image, np.float32)))
+    write_exr(paths[1], channels_from_rgba(np.stack([d, d, d, np.ones_like(d)], -1)))
+    return paths
+
+
+def run_on_passes(image: np.ndarray, depth: np.ndarray, graph: Graph, values: dict,
+                  workdir=None) -> dict:
+    """Render the group on given passes in this process's Blender (factory settings; do
+    not mix with other ``bpy`` work): an Image node feeds ``image`` (premultiplied RGBA)
+    and ``depth``, the group's scalar inputs get ``values``. Returns ``{"Image": (H, W,
+    4), "seconds": compositing + render op}``. Works with the 5.x and the 4.x API."""
+    import os
+    import tempfile
+    import time
+
+    import bpy
+
+    from .exr import read_exr, rgba_from
+
+    image = np.asarray(image, np.float32)
+    H, W = image.shape[:2]
+    with tempfile.TemporaryDirectory(prefix="mpib-nodegroup-") as tmp:
+        d = str(workdir or tmp)
+        os.makedirs(d, exist_ok=True)
+        paths = _write_passes(d, image, depth)
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+        sc = bpy.context.scene
+        sc.render.engine = "CYCLES"
+        sc.cycles.samples = 1
+        r = sc.render
+        r.resolution_x, r.resolution_y, r.resolution_percentage = W, H, 100
+        r.use_compositing = True
+        sc.view_settings.view_transform = "Standard"
+        s = r.image_settings
+        if hasattr(s, "media_type"):
+            s.media_type = "IMAGE"
+        s.file_format, s.color_mode, s.color_depth = "OPEN_EXR", "RGBA", "32"
+        tree = compositor_tree(sc, create=True)
+        tree.nodes.clear()
+        out = tree_output(tree)
+        group = build_group(graph)
+        node = tree.nodes.new(node_id("group", is_legacy_api(bpy)))
+        node.node_tree = group
+        srcs = []
+        for path in paths:
+            src = tree.nodes.new("CompositorNodeImage")
+            src.image = bpy.data.images.load(path, check_existing=False)
+            srcs.append(src)
+        tree.links.new(srcs[0].outputs["Image"], node.inputs["Image"])
+        sep = tree.nodes.new("CompositorNodeSeparateColor")
+        tree.links.new(srcs[1].outputs["Image"], sep.inputs[0])
+        tree.links.new(sep.outputs[0], node.inputs["Depth"])
+        for name, v in values.items():
+            node.inputs[name].default_value = float(v)
+        tree.links.new(node.outputs["Image"], out.inputs[0])
+        r.filepath = os.path.join(d, "group_output.exr")
+        t0 = time.perf_counter()
+        bpy.ops.render.render(write_still=True)
+        seconds = time.perf_counter() - t0
+        res = rgba_from(read_exr(r.filepath))
+    return {"Image": res, "seconds": seconds}
