@@ -19,16 +19,20 @@ animate focus and aperture):
    ``A = R f_px``; focus ``d_f = 1 / z_f``; slice radius ``r_i = A |d_i - d_f|`` px.
    "Sensor Width" is the sensor size across the image width for the camera's fit (the
    drivers of :mod:`blender_addon.nodegroup_ops` compute it for AUTO and VERTICAL fits).
-2. Per pixel ``d = 1/Z`` from the Depth pass and the soft split between neighbouring
-   slices of :func:`mpib_validate.mpi.split_between_planes`: with
+2. Per pixel ``d = 1/Z`` from the Depth pass, dilated by one pixel (the largest ``d`` of
+   the 3 x 3 neighbourhood, Dilate/Erode): the Depth pass holds the surface at the pixel
+   centre, but an anti-aliased edge pixel mixes in the colour of the nearer side, so it
+   goes to the nearer slice (whose blur it follows) and the farther slice, clean, is
+   filled under it. Then the soft split between neighbouring slices of
+   :func:`mpib_validate.mpi.split_between_planes`: with
    ``u = clamp((d - d_i) / (d_{i+1} - d_i))`` the near slice gets ``u alpha`` and the
    far slice ``alpha (1 - u) / (1 - u alpha)``, so that "over" gives back the pixel's
    alpha and Eq. 16 its disparity. Slice ``i`` is the image times its factor (premultiplied
    colour and alpha).
 3. Hidden background (optional): the Inpaint node extends the pixels that belong wholly
-   to slice ``i`` outwards by ``D_i = ceil(A (d_max - d_i)) + 1`` px (the largest
-   parallax between the slice and the nearest content); the extension is kept only
-   where nearer content covers the slice (``d >= d_{i+1}``), under the slice.
+   to slice ``i`` outwards by ``D_i = ceil(A (d_max - d_i)) + 1`` px
+   (the largest parallax between the slice and the nearest content); the extension is
+   kept only where nearer content covers the slice (``d >= d_{i+1}``), under the slice.
 4. A disk blur of radius ``r_i`` per slice: Bokeh Blur with a round Bokeh Image (both
    APIs; the radius is truncated to whole pixels, 5.x: Size in pixels, 4.x: Size in
    percent of the larger image side, at most 10 %), or on 5.x the Convolve node with an
@@ -111,6 +115,7 @@ NODE_IDS = {
     "bokeh_image": ("CompositorNodeBokehImage", "CompositorNodeBokehImage"),
     "bokeh_blur": ("CompositorNodeBokehBlur", "CompositorNodeBokehBlur"),
     "inpaint": ("CompositorNodeInpaint", "CompositorNodeInpaint"),
+    "dilate": ("CompositorNodeDilateErode", "CompositorNodeDilateErode"),
     "convolve": ("CompositorNodeConvolve", None),
     "crop": ("CompositorNodeCrop", "CompositorNodeCrop"),
     "image_coordinates": ("CompositorNodeImageCoordinates", None),
@@ -162,6 +167,8 @@ OUTPUTS = (
     ("Alpha", "NodeSocketFloat", "Coverage of Eq. 1 (acc_a)"),
 )
 
+#: Pixels within this many pixels of nearer content go to the nearer slice (see step 2).
+EDGE_PX = 1
 #: Smallest normaliser the final division uses (below it the colour is ~0 anyway).
 NORM_FLOOR = 1e-6
 #: The Bokeh Image node's fixed resolution (5.x and 4.x).
@@ -172,41 +179,48 @@ BOKEH_IMAGE_SIZE = 512
 # Slice placement
 
 
-def place_slices(depth: np.ndarray, blur_parameter: float, tolerance_px: float = 0.5,
-                 max_slices: int = 8, far_limit: float | None = None) -> tuple[np.ndarray, float]:
-    """Slice disparities (far to near) for the depth present in a render.
-
-    The adaptive planes (:func:`mpib_validate.mpi.adaptive_planes` over the disparity
-    intervals that hold content, spaced so that the blur-radius quantisation error is at
-    most the tolerance), with the tolerance doubled (then refined by bisection) until at
-    most ``max_slices`` remain. Returns ``(disparities, tolerance_px_used)``.
-    """
-    from .mpi import adaptive_planes, plane_spacing
-    from .passes import DEFAULT_FAR_LIMIT, _content_intervals, depth_to_disparity
+def slices_for_intervals(intervals, blur_parameter: float, tolerance_px: float = 0.5,
+                         max_slices: int = 8) -> tuple[np.ndarray, float]:
+    """Slice disparities (far to near) for disparity intervals ``[(lo, hi), ...]`` that
+    hold content: the adaptive planes (:func:`mpib_validate.mpi.adaptive_planes`, spaced
+    for a blur-radius quantisation error of at most the tolerance), with the tolerance
+    doubled, then refined by bisection to 0.1 %, until at most ``max_slices`` remain.
+    Returns ``(disparities, tolerance_px_used)``."""
+    from .mpi import adaptive_planes
 
     if max_slices < 1:
         raise ValueError(f"max_slices must be >= 1, got {max_slices}")
-    D = depth_to_disparity(depth, DEFAULT_FAR_LIMIT if far_limit is None else far_limit)
+    if not blur_parameter > 0:
+        raise ValueError(f"the blur parameter must be > 0, got {blur_parameter}")
+    intervals = list(intervals)
+    if not intervals:
+        raise ValueError("no content to place slices on")
 
     def planes(tol):
-        step = plane_spacing(blur_parameter, tol)
-        return adaptive_planes(_content_intervals(D, step), blur_parameter, tol)
+        return adaptive_planes(intervals, blur_parameter, tol)
 
-    p = planes(tolerance_px)
-    if len(p) <= max_slices:
-        return p, float(tolerance_px)
-    lo, hi = tolerance_px, tolerance_px
+    if len(planes(tolerance_px)) <= max_slices:
+        return planes(tolerance_px), float(tolerance_px)
+    lo, hi = tolerance_px, 2.0 * tolerance_px
     while len(planes(hi)) > max_slices:
-        lo, hi = hi, hi * 2.0
-    for _ in range(30):  # the smallest tolerance (to 0.1 %) that fits
-        if hi - lo <= 1e-3 * hi:
-            break
+        lo, hi = hi, 2.0 * hi
+    while hi - lo > 1e-3 * hi:
         mid = 0.5 * (lo + hi)
-        if len(planes(mid)) > max_slices:
-            lo = mid
-        else:
-            hi = mid
+        lo, hi = (mid, hi) if len(planes(mid)) > max_slices else (lo, mid)
     return planes(hi), float(hi)
+
+
+def place_slices(depth: np.ndarray, blur_parameter: float, tolerance_px: float = 0.5,
+                 max_slices: int = 8, far_limit: float | None = None) -> tuple[np.ndarray, float]:
+    """Slice disparities (far to near) for the depth present in a render: the content
+    intervals of its disparity ``1/Z`` (gaps wider than one plane step split them; depth
+    at or beyond ``far_limit`` is at infinity) through :func:`slices_for_intervals`."""
+    from .mpi import plane_spacing
+    from .passes import DEFAULT_FAR_LIMIT, _content_intervals, depth_to_disparity
+
+    D = depth_to_disparity(depth, DEFAULT_FAR_LIMIT if far_limit is None else far_limit)
+    intervals = _content_intervals(D, plane_spacing(blur_parameter, tolerance_px))
+    return slices_for_intervals(intervals, blur_parameter, tolerance_px, max_slices)
 
 
 # --------------------------------------------------------------------------------------
@@ -253,6 +267,7 @@ KINDS = {
     "disk_kernel": "(radius_px,): K x K kernel clamp(r + 1/2 - |x|, 0, 1), param size K (5.x)",
     "convolve": "(image, kernel): Convolve, kernel normalised, zero-padded FFT (5.x)",
     "inpaint": "(image,): Inpaint, param distance (px)",
+    "dilate": "(value,): Dilate/Erode in Step mode, param size n: max over (2n+1)^2",
 }
 
 
@@ -299,17 +314,31 @@ def fill_distances(disparities, blur_parameter: float, cap: int = 256) -> tuple:
     return tuple(int(min(cap, math.ceil(blur_parameter * (d[-1] - x)) + 1)) for x in d)
 
 
+#: Largest Convolve kernel half size: the kernel image is cut from the 512 px Bokeh Image.
+KERNEL_CAP = (BOKEH_IMAGE_SIZE - 3) // 2
+
+
+def make_spec(disparities, blur_parameter: float, *, fill: str = "inpaint",
+              blur: str = "bokeh", max_radius_px: float | None = None) -> GroupSpec:
+    """The structure for given slices: fill distances by :func:`fill_distances`, and
+    (Convolve) a kernel for radii up to ``max_radius_px`` (default ``A d_max``, the
+    largest radius of a focus at infinity or anywhere within the slices), at most
+    :data:`KERNEL_CAP`. The kernel's size does not change the Convolve node's cost (its
+    FFT pads the image by its own size)."""
+    d = np.asarray(disparities, np.float64)
+    if max_radius_px is None:
+        max_radius_px = blur_parameter * float(max(d[-1], d[-1] - d[0]))
+    k = min(KERNEL_CAP, int(math.ceil(max_radius_px)) + 1) if blur == "convolve" else 0
+    return GroupSpec(tuple(d), fill, blur, fill_distances(d, blur_parameter), k)
+
+
 def spec_from_render(depth: np.ndarray, blur_parameter: float, *, max_slices: int = 8,
                      tolerance_px: float = 0.5, fill: str = "inpaint", blur: str = "bokeh",
                      max_radius_px: float | None = None) -> GroupSpec:
-    """The structure for a render's depth: slices by :func:`place_slices`, fill
-    distances by :func:`fill_distances`, and (Convolve) a kernel large enough for
-    ``max_radius_px`` (default: the largest radius any focus within the slices gives)."""
+    """The structure for a render's depth: slices by :func:`place_slices`, the rest by
+    :func:`make_spec`."""
     d, _ = place_slices(depth, blur_parameter, tolerance_px, max_slices)
-    if max_radius_px is None:
-        max_radius_px = blur_parameter * float(d[-1] - d[0])
-    k = int(math.ceil(max_radius_px)) + 1 if blur == "convolve" else 0
-    return GroupSpec(tuple(d), fill, blur, fill_distances(d, blur_parameter), k)
+    return make_spec(d, blur_parameter, fill=fill, blur=blur, max_radius_px=max_radius_px)
 
 
 class _Builder:
@@ -355,7 +384,8 @@ def describe(spec: GroupSpec) -> Graph:
     img = g.add("image", "separate", GroupIn("Image"))
     ch = [Ref("image", k) for k in range(4)]
     alpha = ch[3]
-    disp = g.math("disparity", "DIVIDE", 1.0, GroupIn("Depth"))
+    raw = g.math("disparity_raw", "DIVIDE", 1.0, GroupIn("Depth"))
+    disp = g.add("disparity", "dilate", raw, size=EDGE_PX)
     u, lt, ge = {}, {}, {}
     for k in range(n - 1):
         off = g.math(f"u{k}.offset", "SUBTRACT", disp, d[k])
@@ -456,13 +486,13 @@ def _math(op: str, a, b, clamp: bool):
     return np.clip(r, _F(0), _F(1)) if clamp else r
 
 
-def bokeh_disk_image(size: int = BOKEH_IMAGE_SIZE, legacy: bool = False) -> np.ndarray:
+def bokeh_disk_image(size: int = BOKEH_IMAGE_SIZE) -> np.ndarray:
     """The round Bokeh Image (Roundness 1, no catadioptric, no shift), one channel
-    ``(size, size)`` with row 0 at the bottom: 1 inside the circle of radius ``size/2``,
-    ``R - dist`` within a pixel of its edge, 0 outside. 5.x measures from texel centres
-    (``texel + 1/2``), 4.x from texel corners."""
+    ``(size, size)`` with row 0 at the bottom: 1 inside the circle of radius ``size/2``
+    about the centre (texel centres at ``texel + 1/2``), ``R - dist`` within a pixel of
+    its edge, 0 outside."""
     R = _F(size / 2.0)
-    t = np.arange(size, dtype=_F) + (_F(0) if legacy else _F(0.5)) - R
+    t = np.arange(size, dtype=_F) + _F(0.5) - R
     dist = np.sqrt(t[None, :] ** 2 + t[:, None] ** 2).astype(_F)
     v = np.where(dist > R, _F(0), np.where(R - dist < 1, R - dist, _F(1)))
     return v.astype(_F)
@@ -487,43 +517,20 @@ def _sample_bilinear_extended(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> 
     return (top * (1 - fy) + bot * fy).astype(_F)
 
 
-def bokeh_blur_kernel(radius: int, legacy: bool = False) -> tuple[np.ndarray, int, float]:
+def bokeh_blur_kernel(radius: int) -> np.ndarray:
     """The weights Bokeh Blur uses at integer ``radius`` with the round Bokeh Image, as a
-    correlation kernel over offsets (rows top-down). Returns ``(kernel, reach,
-    centre_extra)``: ``kernel`` of shape ``(2 reach + 1)^2`` (offset ``(dy, dx)`` at
-    ``[reach + dy, reach + dx]``), and the extra weight 4.x adds to the centre pixel.
-
-    5.x: ``(2 s + 1)^2`` taps, tap ``t`` samples the Bokeh Image bilinearly at
-    ``1 - (t + 1/2) / (2 s + 1)`` (a disk of radius about ``s + 1/2``).
-    4.x: ``pixel_size = s``, offsets ``-s .. s - 1`` in Blender's axes (x right, y up),
-    nearest texel at ``256 - offset * 256 / s``; when ``s < 2`` the centre pixel gets an
-    extra weight 1."""
+    correlation kernel ``(2 s + 1)^2`` over offsets (rows top-down): tap ``t`` samples
+    the Bokeh Image bilinearly at ``1 - (t + 1/2) / (2 s + 1)`` (a disk of radius about
+    ``s + 1/2``). Blender 5.0 and 4.2 (measured with impulses) weigh alike."""
     s = int(radius)
     if s <= 0:
-        return np.ones((1, 1), _F), 0, 0.0
-    if not legacy:
-        n = 2 * s + 1
-        t = np.arange(n, dtype=_F)
-        c = _F(1) - (t + _F(0.5)) / _F(n)
-        img = bokeh_disk_image()
-        # kernel texel (tx, ty) -> weight for offset (tx - s, ty - s) in Blender axes (y up)
-        k_up = _sample_bilinear_extended(img, c[None, :], c[:, None])
-        return np.ascontiguousarray(k_up[::-1]), s, 0.0
-    img = bokeh_disk_image(legacy=True)
-    m = _F(BOKEH_IMAGE_SIZE / 2.0) / _F(s)
-    offs = np.arange(-s, s, dtype=_F)  # Blender offsets -s .. s-1
-    coord = (_F(BOKEH_IMAGE_SIZE / 2.0) - offs * m).astype(_F)
-    idx = np.floor(coord).astype(np.int64)
-    ok = (idx >= 0) & (idx < BOKEH_IMAGE_SIZE)
-    w1 = np.where(ok, 1, 0)
-    idxc = np.clip(idx, 0, BOKEH_IMAGE_SIZE - 1)
-    k_up = img[idxc[:, None], idxc[None, :]] * (w1[:, None] * w1[None, :])  # [y offset, x offset]
-    # place into a symmetric (2s+1)^2 frame: Blender offset o -> index s + o; rows top-down
-    # so the y offset o (up) is row s - o
-    kern = np.zeros((2 * s + 1, 2 * s + 1), _F)
-    for iy, oy in enumerate(range(-s, s)):
-        kern[s - oy, 0:2 * s] = k_up[iy]
-    return kern, s, 1.0 if s < 2 else 0.0
+        return np.ones((1, 1), _F)
+    n = 2 * s + 1
+    t = np.arange(n, dtype=_F)
+    c = _F(1) - (t + _F(0.5)) / _F(n)
+    # kernel texel (tx, ty) weighs offset (tx - s, ty - s) in Blender's axes (y up)
+    k_up = _sample_bilinear_extended(bokeh_disk_image(), c[None, :], c[:, None])
+    return np.ascontiguousarray(k_up[::-1])
 
 
 def legacy_pixel_size(radius, largest_side) -> int:
@@ -537,6 +544,9 @@ def legacy_pixel_size(radius, largest_side) -> int:
 
 
 def _bokeh_blur(image: np.ndarray, radius, legacy: bool, largest_side=None) -> np.ndarray:
+    """Constant-size Bokeh Blur: ``sum_k w_k I(p + k) / sum_k w_k`` over
+    :func:`bokeh_blur_kernel`, borders extended (both APIs; 4.x converts the radius to
+    and from a percentage of the larger side, :func:`legacy_pixel_size`)."""
     from scipy import ndimage
 
     if legacy:
@@ -545,20 +555,11 @@ def _bokeh_blur(image: np.ndarray, radius, legacy: bool, largest_side=None) -> n
         s = int(np.floor(np.asarray(radius, _F)))  # the node truncates (radius >= 0)
     if s <= 0:
         return image.astype(_F)
-    kern, reach, extra = bokeh_blur_kernel(s, legacy)
+    kern = bokeh_blur_kernel(s).astype(np.float64)
     img = image.astype(np.float64)
-    H, W = img.shape[:2]
-    if not legacy:  # extended borders, every tap counts
-        num = np.stack([ndimage.correlate(img[..., c], kern.astype(np.float64), mode="nearest")
-                        for c in range(img.shape[2])], axis=-1)
-        return (num / float(kern.sum(dtype=np.float64))).astype(_F)
-    # 4.x: the window is clipped to the image and normalised by the weights it used
-    k = kern.astype(np.float64)
-    ones = np.ones((H, W))
-    den = ndimage.correlate(ones, k, mode="constant") + extra
-    num = np.stack([ndimage.correlate(img[..., c], k, mode="constant") + extra * img[..., c]
+    num = np.stack([ndimage.correlate(img[..., c], kern, mode="nearest")
                     for c in range(img.shape[2])], axis=-1)
-    return (num / den[..., None]).astype(_F)
+    return (num / float(kern.sum())).astype(_F)
 
 
 def disk_kernel(radius, size: int) -> np.ndarray:
@@ -580,6 +581,15 @@ def _convolve(image: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     out = np.stack([fftconvolve(image[..., c].astype(np.float64), k, mode="same")
                     for c in range(image.shape[2])], axis=-1)
     return out.astype(_F)
+
+
+def _dilate(value: np.ndarray, size: int) -> np.ndarray:
+    """Dilate/Erode in Step mode: the largest value over the ``(2 n + 1)^2`` square
+    (borders extended)."""
+    from scipy import ndimage
+
+    n = int(size)
+    return ndimage.maximum_filter(np.asarray(value, _F), size=2 * n + 1, mode="nearest")
 
 
 def _gauss_weights(max_distance: int) -> np.ndarray:
@@ -743,6 +753,8 @@ def evaluate(graph: Graph, image: np.ndarray, depth: np.ndarray, values: dict,
             v = disk_kernel(a[0], op.param("size"))
         elif k == "convolve":
             v = _convolve(a[0], a[1])
+        elif k == "dilate":
+            v = _dilate(a[0], op.param("size"))
         elif k == "inpaint":
             if legacy:
                 raise NotImplementedError("the 4.x Inpaint node's algorithm is not modelled")
@@ -869,6 +881,11 @@ class _Emitter:
             n.inputs["Kernel Data Type"].default_value = "Float"
             self.tree.links.new(self.socket(op.args[1]), n.inputs["Float Kernel"])
             n.inputs["Normalize Kernel"].default_value = True
+        elif k == "dilate":
+            n = self.new("dilate", op.name, slot)
+            self.feed(n.inputs[0], op.args[0])
+            set_option(n, "Type", "Steps", "mode") if not L else setattr(n, "mode", "STEP")
+            set_option(n, "Size", int(op.param("size")), "distance")
         elif k == "inpaint":
             n = self.new("inpaint", op.name, slot)
             self.feed(n.inputs["Image"], op.args[0])
@@ -1070,3 +1087,96 @@ def run_on_passes(image: np.ndarray, depth: np.ndarray, graph: Graph, values: di
         seconds = time.perf_counter() - t0
         res = rgba_from(read_exr(r.filepath))
     return {"Image": res, "seconds": seconds}
+
+
+# --------------------------------------------------------------------------------------
+# Drivers from the scene camera, and the scene's depth range without a render
+
+
+def _driver(socket, expression: str, variables) -> None:
+    """Replace the driver of ``socket.default_value``: a simple expression (evaluated
+    without Python) over SINGLE_PROP variables ``(name, id_type, id, data_path)``."""
+    socket.driver_remove("default_value")
+    fc = socket.driver_add("default_value")
+    drv = fc.driver
+    drv.type = "SCRIPTED"
+    for name, id_type, ident, path in variables:
+        var = drv.variables.new()
+        var.name = name
+        var.type = "SINGLE_PROP"
+        var.targets[0].id_type = id_type
+        var.targets[0].id = ident
+        var.targets[0].data_path = path
+    drv.expression = expression
+
+
+#: Inputs the camera drivers set.
+DRIVEN_INPUTS = ("Focus Distance", "F-Stop", "Focal Length", "Sensor Width", "Resolution X",
+                 "Resolution Y", "Unit Scale")
+
+
+def add_camera_drivers(node, scene, cam_obj=None) -> list[str]:
+    """Drive the group node's lens inputs from ``cam_obj`` (default the scene camera) and
+    the scene's render settings, with simple expressions that Blender evaluates without
+    Python, follow keyframes and survive saving:
+
+    - Focus Distance: the focus object's planar depth ``|z . (cam - obj)| / |z|`` (z the
+      camera's view axis, as Blender computes it), else ``dof.focus_distance``;
+    - F-Stop, Focal Length: ``dof.aperture_fstop``, ``lens``;
+    - Sensor Width: the sensor size across the image width for the fit (HORIZONTAL:
+      the width; VERTICAL: ``height * W / H``; AUTO: ``width * W / max(W, H)``);
+    - Resolution X/Y: ``floor(resolution * percentage / 100)``; Unit Scale.
+
+    Returns the names of the driven inputs. Deleting a driver leaves its input free."""
+    cam_obj = cam_obj or scene.camera
+    if cam_obj is None or cam_obj.type != "CAMERA":
+        raise ValueError("the scene has no camera to drive the node from")
+    cam = cam_obj.data
+    focus_obj = cam.dof.focus_object
+    if focus_obj is not None:
+        vars_ = []
+        for i, ax in enumerate("xyz"):  # RNA paths index matrix_world column first
+            vars_ += [(f"z{ax}", "OBJECT", cam_obj, f"matrix_world[2][{i}]"),
+                      (f"c{ax}", "OBJECT", cam_obj, f"matrix_world[3][{i}]"),
+                      (f"o{ax}", "OBJECT", focus_obj, f"matrix_world[3][{i}]")]
+        _driver(node.inputs["Focus Distance"],
+                "abs(zx * (cx - ox) + zy * (cy - oy) + zz * (cz - oz)) / "
+                "sqrt(zx * zx + zy * zy + zz * zz)", vars_)
+    else:
+        _driver(node.inputs["Focus Distance"], "z", [("z", "CAMERA", cam, "dof.focus_distance")])
+    _driver(node.inputs["F-Stop"], "n", [("n", "CAMERA", cam, "dof.aperture_fstop")])
+    _driver(node.inputs["Focal Length"], "f", [("f", "CAMERA", cam, "lens")])
+    res = [("rx", "SCENE", scene, "render.resolution_x"),
+           ("ry", "SCENE", scene, "render.resolution_y")]
+    pct = [("pct", "SCENE", scene, "render.resolution_percentage")]
+    # sensor_fit is an enum: AUTO 0, HORIZONTAL 1, VERTICAL 2
+    _driver(node.inputs["Sensor Width"],
+            "sw if fit == 1 else (sh * rx / ry if fit == 2 else sw * rx / max(rx, ry))",
+            [("sw", "CAMERA", cam, "sensor_width"), ("sh", "CAMERA", cam, "sensor_height"),
+             ("fit", "CAMERA", cam, "sensor_fit")] + res)
+    _driver(node.inputs["Resolution X"], "floor(rx * pct / 100)", res[:1] + pct)
+    _driver(node.inputs["Resolution Y"], "floor(ry * pct / 100)", res[1:] + pct)
+    _driver(node.inputs["Unit Scale"], "u if u > 0 else 1",
+            [("u", "SCENE", scene, "unit_settings.scale_length")])
+    return list(DRIVEN_INPUTS)
+
+
+def scene_disparity_intervals(scene, cam_obj=None) -> list[tuple[float, float]]:
+    """Disparity intervals ``1/Z`` of the visible mesh objects' bounding boxes in front
+    of the camera (Z planar depth, clipped to the camera's clip range), plus the
+    background at 0 when the world is visible: a stand-in for the depth of a render
+    when there is none yet."""
+    from mathutils import Vector
+
+    cam_obj = cam_obj or scene.camera
+    inv = cam_obj.matrix_world.inverted()
+    cam = cam_obj.data
+    out = [(0.0, 0.0)]
+    for ob in scene.objects:
+        if ob.type not in ("MESH", "CURVE", "SURFACE", "META", "FONT") or not ob.visible_get():
+            continue
+        zs = [-(inv @ (ob.matrix_world @ Vector(c))).z for c in ob.bound_box]
+        z0, z1 = max(min(zs), cam.clip_start), min(max(zs), cam.clip_end)
+        if z1 > cam.clip_start and z0 <= z1:
+            out.append((1.0 / z1, 1.0 / z0))
+    return out
