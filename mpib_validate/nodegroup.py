@@ -181,29 +181,44 @@ BOKEH_IMAGE_SIZE = 512
 
 def slices_for_intervals(intervals, blur_parameter: float, tolerance_px: float = 0.5,
                          max_slices: int = 8) -> tuple[np.ndarray, float]:
-    """Slice disparities (far to near) for disparity intervals ``[(lo, hi), ...]`` that
-    hold content: the adaptive planes (:func:`mpib_validate.mpi.adaptive_planes`, spaced
-    for a blur-radius quantisation error of at most the tolerance), with the tolerance
-    doubled, then refined by bisection to 0.1 %, until at most ``max_slices`` remain.
-    Returns ``(disparities, tolerance_px_used)``."""
-    from .mpi import adaptive_planes
+    """Slice disparities (far to near) for content in disparity intervals.
+
+    ``intervals``: ``[(lo, hi), ...]``, or a function of the plane step (disparity) that
+    returns them (content split where a gap exceeds the step, so that gaps close as the
+    tolerance grows). The planes are :func:`mpib_validate.mpi.adaptive_planes` (only where
+    content is, spaced for a blur-radius quantisation error of at most the tolerance);
+    the tolerance is doubled, then refined by bisection to 0.1 %, until at most
+    ``max_slices`` remain. If no tolerance gets there (more separate pieces of content
+    than slices), the slices are spread evenly over the whole disparity range. Returns
+    ``(disparities, tolerance_px_used)``.
+    """
+    from .mpi import adaptive_planes, plane_spacing
 
     if max_slices < 1:
         raise ValueError(f"max_slices must be >= 1, got {max_slices}")
     if not blur_parameter > 0:
         raise ValueError(f"the blur parameter must be > 0, got {blur_parameter}")
-    intervals = list(intervals)
-    if not intervals:
+    get = intervals if callable(intervals) else (lambda step, iv=list(intervals): iv)
+    if not get(plane_spacing(blur_parameter, tolerance_px)):
         raise ValueError("no content to place slices on")
 
     def planes(tol):
-        return adaptive_planes(intervals, blur_parameter, tol)
+        return adaptive_planes(get(plane_spacing(blur_parameter, tol)), blur_parameter, tol)
 
     if len(planes(tolerance_px)) <= max_slices:
         return planes(tolerance_px), float(tolerance_px)
     lo, hi = tolerance_px, 2.0 * tolerance_px
-    while len(planes(hi)) > max_slices:
+    for _ in range(40):
+        if len(planes(hi)) <= max_slices:
+            break
         lo, hi = hi, 2.0 * hi
+    else:  # more separate pieces than slices, at any tolerance
+        ends = np.array(get(plane_spacing(blur_parameter, tolerance_px)), np.float64)
+        d0, d1 = float(ends.min()), float(ends.max())
+        if max_slices == 1 or d1 <= d0:
+            return np.array([0.5 * (d0 + d1)]), math.inf
+        d = np.linspace(d0, d1, max_slices)
+        return d, float(blur_parameter * (d[1] - d[0]) / 2.0)
     while hi - lo > 1e-3 * hi:
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if len(planes(mid)) > max_slices else (lo, mid)
@@ -215,12 +230,12 @@ def place_slices(depth: np.ndarray, blur_parameter: float, tolerance_px: float =
     """Slice disparities (far to near) for the depth present in a render: the content
     intervals of its disparity ``1/Z`` (gaps wider than one plane step split them; depth
     at or beyond ``far_limit`` is at infinity) through :func:`slices_for_intervals`."""
-    from .mpi import plane_spacing
     from .passes import DEFAULT_FAR_LIMIT, _content_intervals, depth_to_disparity
 
     D = depth_to_disparity(depth, DEFAULT_FAR_LIMIT if far_limit is None else far_limit)
-    intervals = _content_intervals(D, plane_spacing(blur_parameter, tolerance_px))
-    return slices_for_intervals(intervals, blur_parameter, tolerance_px, max_slices)
+    values = np.unique(np.round(D, 12))
+    return slices_for_intervals(lambda step: _content_intervals(values, step), blur_parameter,
+                                tolerance_px, max_slices)
 
 
 # --------------------------------------------------------------------------------------

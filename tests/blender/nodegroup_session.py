@@ -6,7 +6,9 @@ Usage: python nodegroup_session.py render JSON   (builds a small Cycles scene, a
        python nodegroup_session.py reopen JSON   (opens a saved .blend and renders it; imports
        nothing of this project, so the extension is not installed)
 
-Prints one line ``RESULT {json}``. The scenes are emissive (no lighting noise): a
+Prints one line ``RESULT {json}``. ``MPIB_EXTRA_SITE`` (a site-packages folder) is added at
+the end of ``sys.path`` for the project's dependencies (OpenEXR, SciPy) when this Blender's
+Python lacks them (a second bpy environment of the same Python version). The scenes are emissive (no lighting noise): a
 checker wall behind one or two foreground objects; the camera sits at the origin looking
 down -Z with a 100 mm lens on a 36 mm sensor (sensor fit horizontal) and f/1.
 """
@@ -15,7 +17,10 @@ import json
 import os
 import sys
 
-import bpy
+if os.environ.get("MPIB_EXTRA_SITE"):
+    sys.path.append(os.environ["MPIB_EXTRA_SITE"])
+
+import bpy  # noqa: E402
 
 command, args = sys.argv[1], json.loads(sys.argv[2])
 out = {"version": bpy.app.version_string}
@@ -148,7 +153,8 @@ if command == "render":
     if args.get("regenerate"):  # same operator again with a structural change
         op.update(args["regenerate"])
         bpy.ops.mpib.add_refocus_node(**op)
-        out["regenerated_spec"] = json.loads(tree.nodes[ng.GROUP_NAME].node_tree["mpib_spec"])
+        out["first_spec"] = out["spec"]  # the frames below use the regenerated group
+        out["spec"] = json.loads(tree.nodes[ng.GROUP_NAME].node_tree["mpib_spec"])
         out["groups"] = [g.name for g in bpy.data.node_groups]
     keys = args.get("keys")  # {"focus": [[frame, value], ...]}
     if keys:
@@ -164,8 +170,8 @@ if command == "render":
         path = render_to(sc, os.path.join(work, f"node_{f}.exr"))
         out["frames"][str(f)] = {"path": path, "values": values,
                                  "focus_distance": cam.dof.focus_distance}
+    blender_addon.unregister()  # (Blender 4.2 crashes at exit with it still registered)
     if args.get("save"):
-        blender_addon.unregister()
         bpy.ops.wm.save_as_mainfile(filepath=args["save"])
         out["saved"] = args["save"]
     if args.get("dof_spp"):  # the truth: Cycles' own depth of field, compositor off
