@@ -19,16 +19,20 @@ animate focus and aperture):
    ``A = R f_px``; focus ``d_f = 1 / z_f``; slice radius ``r_i = A |d_i - d_f|`` px.
    "Sensor Width" is the sensor size across the image width for the camera's fit (the
    drivers of :mod:`blender_addon.nodegroup_ops` compute it for AUTO and VERTICAL fits).
-2. Per pixel ``d = 1/Z`` from the Depth pass, dilated by one pixel (the largest ``d`` of
-   the 3 x 3 neighbourhood, Dilate/Erode): the Depth pass holds the surface at the pixel
-   centre, but an anti-aliased edge pixel mixes in the colour of the nearer side, so it
-   goes to the nearer slice (whose blur it follows) and the farther slice, clean, is
-   filled under it. Then the soft split between neighbouring slices of
-   :func:`mpib_validate.mpi.split_between_planes`: with
+2. Per pixel ``d = 1/Z`` from the Depth pass and the soft split between neighbouring
+   slices of :func:`mpib_validate.mpi.split_between_planes`: with
    ``u = clamp((d - d_i) / (d_{i+1} - d_i))`` the near slice gets ``u alpha`` and the
    far slice ``alpha (1 - u) / (1 - u alpha)``, so that "over" gives back the pixel's
    alpha and Eq. 16 its disparity. Slice ``i`` is the image times its factor (premultiplied
    colour and alpha).
+   Edge pixels: the Depth pass holds the surface at the pixel centre, but an
+   anti-aliased pixel next to nearer content (within a pixel, by more than
+   ``EDGE_JUMP_PX`` of blur radius: a Dilate/Erode of ``d``) mixes in the nearer colour,
+   which the far slice would smear into a halo when it blurs. ``"soft"`` edges (with the
+   fill): the far slice takes the fill's clean colour ``F`` there, and the nearer slice
+   (that of the dilated ``d``) the rest, ``max(I - (1 - b) F, 0)`` at alpha ``b =
+   EDGE_ALPHA``, in front: their pinhole composite is the pixel. ``"hard"`` edges
+   (without fill): the pixel goes wholly to the nearer slice (``d`` dilated).
 3. Hidden background (optional): the Inpaint node extends the pixels that belong wholly
    to slice ``i`` outwards by ``D_i = ceil(A (d_max - d_i)) + 1`` px
    (the largest parallax between the slice and the nearest content); the extension is
@@ -167,8 +171,12 @@ OUTPUTS = (
     ("Alpha", "NodeSocketFloat", "Coverage of Eq. 1 (acc_a)"),
 )
 
-#: Pixels within this many pixels of nearer content go to the nearer slice (see step 2).
+#: Pixels within this many pixels of nearer content are edge pixels (see step 2).
 EDGE_PX = 1
+#: An edge pixel's nearer neighbour is nearer by more than this blur-radius step (px).
+EDGE_JUMP_PX = 1.0
+#: The share of an edge pixel given to the nearer side ("soft" edges).
+EDGE_ALPHA = 0.5
 #: Smallest normaliser the final division uses (below it the colour is ~0 anyway).
 NORM_FLOOR = 1e-6
 #: The Bokeh Image node's fixed resolution (5.x and 4.x).
@@ -297,6 +305,10 @@ class GroupSpec:
         fill_px: Inpaint distance per slice (pixels; ignored without fill).
         kernel_radius_px: half size of the Convolve kernel image (its size is
             ``2 k + 3``); slice radii above ``k + 1/2`` are cut to that square.
+        edge: how anti-aliased edge pixels are shared (see step 2 of the module
+            docstring): ``"soft"`` (needs the fill) or ``"hard"``.
+        edge_jump: disparity step to nearer content that makes a pixel an edge pixel
+            (``"soft"``; :data:`EDGE_JUMP_PX` / A).
     """
 
     disparities: tuple
@@ -304,6 +316,8 @@ class GroupSpec:
     blur: str = "bokeh"
     fill_px: tuple = ()
     kernel_radius_px: int = 0
+    edge: str = "soft"
+    edge_jump: float = 0.0
 
     def __post_init__(self):
         d = tuple(float(x) for x in self.disparities)
@@ -315,6 +329,9 @@ class GroupSpec:
             raise ValueError(f"fill must be 'inpaint' or 'off', got {self.fill!r}")
         if self.blur not in ("bokeh", "convolve"):
             raise ValueError(f"blur must be 'bokeh' or 'convolve', got {self.blur!r}")
+        if self.edge not in ("soft", "hard"):
+            raise ValueError(f"edge must be 'soft' or 'hard', got {self.edge!r}")
+        object.__setattr__(self, "edge_jump", float(self.edge_jump))
         object.__setattr__(self, "disparities", d)
         fill = tuple(int(v) for v in self.fill_px) or (0,) * len(d)
         if len(fill) != len(d):
@@ -344,7 +361,9 @@ def make_spec(disparities, blur_parameter: float, *, fill: str = "inpaint",
     if max_radius_px is None:
         max_radius_px = blur_parameter * float(max(d[-1], d[-1] - d[0]))
     k = min(KERNEL_CAP, int(math.ceil(max_radius_px)) + 1) if blur == "convolve" else 0
-    return GroupSpec(tuple(d), fill, blur, fill_distances(d, blur_parameter), k)
+    return GroupSpec(tuple(d), fill, blur, fill_distances(d, blur_parameter), k,
+                     edge="soft" if fill == "inpaint" else "hard",
+                     edge_jump=EDGE_JUMP_PX / blur_parameter)
 
 
 def spec_from_render(depth: np.ndarray, blur_parameter: float, *, max_slices: int = 8,
@@ -396,23 +415,77 @@ def describe(spec: GroupSpec) -> Graph:
         ab = g.math(f"s{i}.abs", "ABSOLUTE", e)
         radius.append(g.math(f"s{i}.radius", "MULTIPLY", A, ab))
     # 2. disparity, the split between slices
-    img = g.add("image", "separate", GroupIn("Image"))
+    g.add("image", "separate", GroupIn("Image"))
     ch = [Ref("image", k) for k in range(4)]
     alpha = ch[3]
     raw = g.math("disparity_raw", "DIVIDE", 1.0, GroupIn("Depth"))
-    disp = g.add("disparity", "dilate", raw, size=EDGE_PX)
-    u, lt, ge = {}, {}, {}
+    dil = g.add("disparity_dilated", "dilate", raw, size=EDGE_PX)
+    soft = spec.edge == "soft" and spec.fill == "inpaint" and n >= 2
+    own_d = raw if soft else dil  # "hard": edge pixels go wholly to the nearer slice
+
+    def split(tag, dv):
+        lt_, ge_ = {}, {}
+        for k in range(1, n):
+            lt_[k] = g.math(f"{tag}lt{k}", "LESS_THAN", dv, d[k])  # d < d_k
+            ge_[k] = g.math(f"{tag}ge{k}", "SUBTRACT", 1.0, lt_[k])  # d >= d_k
+        own_ = {}  # d in [d_i, d_{i+1}): the slice whose far role the pixel is in
+        for i in range(n):
+            own_[i] = (1.0 if n == 1 else lt_[1] if i == 0 else ge_[n - 1] if i == n - 1
+                       else g.math(f"{tag}own{i}", "MULTIPLY", ge_[i], lt_[i + 1]))
+        return lt_, ge_, own_
+
+    u = {}
     for k in range(n - 1):
-        off = g.math(f"u{k}.offset", "SUBTRACT", disp, d[k])
+        off = g.math(f"u{k}.offset", "SUBTRACT", own_d, d[k])
         u[k] = g.math(f"u{k}", "MULTIPLY", off, 1.0 / (d[k + 1] - d[k]), clamp=True)
-    for k in range(1, n):
-        lt[k] = g.math(f"lt{k}", "LESS_THAN", disp, d[k])  # d < d_k
-        ge[k] = g.math(f"ge{k}", "SUBTRACT", 1.0, lt[k])  # d >= d_k
+    lt, ge, own = split("", own_d)
 
     def scaled(name, image_channels, factor):
         parts = [g.math(f"{name}.{c}", "MULTIPLY", image_channels[j], factor)
                  for j, c in enumerate("rgba")]
         return g.add(name, "combine", *parts)
+
+    # 3. hidden background: each slice's own pixels (not its edge ring) extended
+    has_fill = [spec.fill == "inpaint" and i <= n - 2 and spec.fill_px[i] > 0 for i in range(n)]
+    if soft:  # the edge ring: nearer content within a pixel, by more than the jump
+        gap = g.math("edge.gap", "SUBTRACT", dil, raw)
+        ring = g.math("edge.ring", "GREATER_THAN", gap, spec.edge_jump)
+    filled = {}
+    for i in range(n):
+        if not has_fill[i]:
+            continue
+        src_mask = own[i] if not soft else g.math(f"s{i}.own_core", "MULTIPLY", own[i],
+                                                   g.math(f"s{i}.not_ring", "SUBTRACT", 1.0, ring))
+        src = scaled(f"s{i}.fill_src", ch, src_mask)
+        g.add(f"s{i}.filled", "separate",
+              g.add(f"s{i}.inpaint", "inpaint", src, distance=int(spec.fill_px[i])))
+        filled[i] = [Ref(f"s{i}.filled", k) for k in range(4)]
+    colour = ch
+    if soft:
+        # the far side of an edge pixel: its own slice's fill (clean colour); the near side
+        # the rest, max(I - (1 - b) F, 0) at alpha b, in the nearer (dilated) slice
+        fc = None
+        for i in filled:
+            part = scaled(f"edge.fill{i}", filled[i], own[i])
+            fc = part if fc is None else g.add(f"edge.fills{i}", "over", fc, part)
+        g.add("edge.fill", "separate", fc)
+        fcc = [Ref("edge.fill", k) for k in range(4)]
+        ring_f = g.math("edge.ring_filled", "MULTIPLY", ring, fcc[3])
+        keep = g.math("edge.keep", "SUBTRACT", 1.0, ring_f)
+        cols = []
+        for k, c in enumerate("rgb"):
+            mine = g.math(f"edge.own.{c}", "MULTIPLY", ch[k], keep)
+            theirs = g.math(f"edge.far.{c}", "MULTIPLY", fcc[k], ring_f)
+            cols.append(g.math(f"edge.colour.{c}", "ADD", mine, theirs))
+        colour = cols + [alpha]
+        near = []
+        for k, c in enumerate("rgb"):
+            far_part = g.math(f"edge.farpart.{c}", "MULTIPLY", fcc[k], 1.0 - EDGE_ALPHA)
+            rest = g.math(f"edge.rest.{c}", "SUBTRACT", ch[k], far_part)
+            pos = g.math(f"edge.rest+.{c}", "MAXIMUM", rest, 0.0)
+            near.append(g.math(f"edge.near.{c}", "MULTIPLY", pos, ring_f))
+        near.append(g.math("edge.near.a", "MULTIPLY", ring_f, EDGE_ALPHA))
+        _, _, own_near = split("dil.", dil)
 
     bokeh = g.add("bokeh", "bokeh_disk") if spec.blur == "bokeh" else None
     acc = None
@@ -433,15 +506,13 @@ def describe(spec: GroupSpec) -> Graph:
             factor = parts[0]
         else:
             factor = g.math(f"s{i}.factor", "ADD", parts[0], parts[1])
-        layer = scaled(f"s{i}.layer", ch, factor)
-        # 3. hidden background: slice i's own pixels extended under nearer content
-        if spec.fill == "inpaint" and i <= n - 2 and spec.fill_px[i] > 0:
-            own = lt[1] if i == 0 else g.math(f"s{i}.own", "MULTIPLY", ge[i], lt[i + 1])
-            src = scaled(f"s{i}.fill_src", ch, own)
-            filled = g.add(f"s{i}.inpaint", "inpaint", src, distance=int(spec.fill_px[i]))
-            g.add(f"s{i}.filled", "separate", filled)
-            fill = scaled(f"s{i}.fill", [Ref(f"s{i}.filled", k) for k in range(4)], ge[i + 1])
+        layer = scaled(f"s{i}.layer", colour, factor)
+        if i in filled:  # under nearer content (d >= d_{i+1}), behind the slice
+            fill = scaled(f"s{i}.fill", filled[i], ge[i + 1])
             layer = g.add(f"s{i}.with_fill", "over", fill, layer)
+        if soft and i >= 1:  # the near side of edge pixels, in front
+            edge = scaled(f"s{i}.edge", near, own_near[i])
+            layer = g.add(f"s{i}.with_edge", "over", layer, edge)
         # 4. the disk blur
         if spec.blur == "bokeh":
             blurred = g.add(f"s{i}.blur", "bokeh_blur", layer, bokeh, radius[i])
@@ -983,7 +1054,8 @@ def build_group(graph: Graph, group=None, name: str = GROUP_NAME):
     s = graph.spec
     group["mpib_spec"] = json.dumps({"disparities": list(s.disparities), "fill": s.fill,
                                      "blur": s.blur, "fill_px": list(s.fill_px),
-                                     "kernel_radius_px": s.kernel_radius_px})
+                                     "kernel_radius_px": s.kernel_radius_px,
+                                     "edge": s.edge, "edge_jump": s.edge_jump})
     return group
 
 
@@ -996,7 +1068,7 @@ def spec_of(group) -> GroupSpec | None:
         return None
     d = json.loads(raw)
     return GroupSpec(tuple(d["disparities"]), d["fill"], d["blur"], tuple(d["fill_px"]),
-                     int(d["kernel_radius_px"]))
+                     int(d["kernel_radius_px"]), d.get("edge", "hard"), d.get("edge_jump", 0.0))
 
 
 def install(scene, group, node_name: str = GROUP_NAME):

@@ -33,6 +33,12 @@ CASES = (("cards", 6.0, 1.0), ("cards", 1.5, 1.0), ("sphere", 7.0, 1.0), ("spher
 
 
 def session(python, args: dict, env=None) -> dict:
+    env = dict(os.environ if env is None else env)
+    if python != sys.executable and subprocess.run([python, "-c", "import OpenEXR, scipy"],
+                                                   capture_output=True).returncode != 0:
+        import site  # another bpy of the same Python version: lend it this venv's packages
+
+        env["MPIB_EXTRA_SITE"] = site.getsitepackages()[0]
     r = subprocess.run([python, str(ROOT / "tests" / "blender" / "nodegroup_session.py"), "render",
                         json.dumps(args)], capture_output=True, text=True, timeout=1800, env=env)
     lines = [l for l in r.stdout.splitlines() if l.startswith("RESULT ")]
