@@ -16,17 +16,11 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty
 
 from . import calibrate
 
-#: Largest blur radius (px, over the animation) for which Auto picks Bokeh Blur on 5.x: its
-#: cost grows with the square of the radius, Convolve's FFT costs the same at any radius.
-#: At 1920x1080 (5 slices, 2 cores, indicative) Bokeh Blur took 0.7x the Defocus node's
-#: time at 5.6 px and Convolve 2.2x.
-AUTO_CONVOLVE_ABOVE_PX = 16.0
-
 BLUR_ITEMS = (
-    ("AUTO", "Auto", "Bokeh Blur for blurs up to 16 px, else Convolve (Blender 5.x); "
-                     "Bokeh Blur on 4.x"),
+    ("AUTO", "Auto", "Convolve on Blender 5.x (fractional radii), Bokeh Blur on 4.x"),
     ("CONVOLVE", "Convolve", "FFT convolution with a disk built from nodes (Blender 5.x)"),
-    ("BOKEH", "Bokeh Blur", "Bokeh Blur with a round Bokeh Image (whole-pixel radii)"),
+    ("BOKEH", "Bokeh Blur", "Bokeh Blur with a round Bokeh Image: whole-pixel radii, cost "
+                            "growing with the square of the radius (faster for small blurs)"),
 )
 FILL_ITEMS = (
     ("INPAINT", "Inpaint", "Extend each slice under the nearer ones (hidden background)"),
@@ -122,10 +116,7 @@ class MPIB_OT_add_refocus_node(bpy.types.Operator):
             self.report({"ERROR"}, f"cannot place slices: {exc}")
             return {"CANCELLED"}
         r_max = max(c.blur_parameter * max(abs(x - c.focus_disparity) for x in d) for c in cams)
-        if self.blur == "AUTO":
-            blur = "convolve" if not legacy and r_max > AUTO_CONVOLVE_ABOVE_PX else "bokeh"
-        else:
-            blur = self.blur.lower()
+        blur = ("bokeh" if legacy else "convolve") if self.blur == "AUTO" else self.blur.lower()
         spec = ng.make_spec(d, A, fill=self.fill.lower(), blur=blur,
                             max_radius_px=max(r_max, now.blur_parameter * float(d[-1])))
         graph = ng.describe(spec)

@@ -62,7 +62,8 @@ API; the 4.x Inpaint node is a different algorithm and is not modelled.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+import re
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -909,10 +910,12 @@ class _Emitter:
         return n
 
     def emit(self, op: Op):
-        slot = int(op.name[1:op.name.index(".")]) + 1 if op.name.startswith("s") and "." in op.name else 0
+        m = re.match(r"s(\d+)\.", op.name)
+        slot = int(m.group(1)) + 1 if m else 0  # one row of nodes per slice
         k, L = op.kind, self.legacy
         if k == "math":
-            n = self.math(op.name, op.param("op"), *op.args, clamp=op.param("clamp", False), slot=slot)
+            n = self.math(op.name, op.param("op"), *op.args, clamp=op.param("clamp", False),
+                          slot=slot)
         elif k == "separate":
             n = self.new("separate", op.name, slot)
             self.feed(n.inputs[0], op.args[0])
@@ -951,16 +954,19 @@ class _Emitter:
                 side = self.shared.get("side")
                 if side is None:
                     side = self.shared["side"] = self.math(
-                        "largest_side", "MAXIMUM", GroupIn("Resolution X"), GroupIn("Resolution Y"))
+                        "largest_side", "MAXIMUM", GroupIn("Resolution X"),
+                        GroupIn("Resolution Y"))
                 p = self.math(op.name + ".x100", "MULTIPLY", h.outputs[0], 100.0, slot=slot)
-                pct = self.math(op.name + ".percent", "DIVIDE", p.outputs[0], side.outputs[0], slot=slot)
+                pct = self.math(op.name + ".percent", "DIVIDE", p.outputs[0], side.outputs[0],
+                                slot=slot)
                 self.tree.links.new(pct.outputs[0], n.inputs["Size"])
             else:
                 self.feed(n.inputs["Size"], op.args[2])
         elif k == "disk_kernel":
             dist = self._kernel_distance(op.param("size"))
             rp = self.math(op.name + ".r+0.5", "ADD", op.args[0], 0.5, slot=slot)
-            n = self.math(op.name, "SUBTRACT", rp.outputs[0], dist.outputs[0], clamp=True, slot=slot)
+            n = self.math(op.name, "SUBTRACT", rp.outputs[0], dist.outputs[0], clamp=True,
+                          slot=slot)
         elif k == "convolve":
             n = self.new("convolve", op.name, slot)
             self.feed(n.inputs["Image"], op.args[0])
@@ -970,7 +976,10 @@ class _Emitter:
         elif k == "dilate":
             n = self.new("dilate", op.name, slot)
             self.feed(n.inputs[0], op.args[0])
-            set_option(n, "Type", "Steps", "mode") if not L else setattr(n, "mode", "STEP")
+            if L:
+                n.mode = "STEP"
+            else:
+                n.inputs["Type"].default_value = "Steps"
             set_option(n, "Size", int(op.param("size")), "distance")
         elif k == "inpaint":
             n = self.new("inpaint", op.name, slot)

@@ -66,7 +66,8 @@ def score_case(res: dict, fstop: float, focus: float) -> dict:
     A, d_f = cam.blur_parameter, cam.focus_disparity
     lens = {"lens_mm": 100.0, "sensor_width_mm": 36.0, "fstop": fstop, "focus_distance": focus}
     defocused, _ = defocus(sharp, depth.astype(np.float32), lens, timing=False)
-    numpy_default = refocus(Passes(sharp, depth, "sharp", "depth"), A, d_f, "default").image[..., :3]
+    passes = Passes(sharp, depth, "sharp", "depth")
+    numpy_default = refocus(passes, A, d_f, "default").image[..., :3]
     D = np.where(depth < 1e9, 1.0 / depth, 0.0)
     mask = occlusion_mask(boundaries_from_disparity(D, 1.0 / A), D, A, d_f)
     ref = np.clip(truth, 0, 1)
@@ -109,8 +110,8 @@ def main(argv=None) -> int:
         print(json.dumps({k: r[k] for k in ("scene", "focus", "node_group", "defocus_node",
                                              "numpy_default")}), flush=True)
     (out_dir / "results.json").write_text(json.dumps(rows, indent=1, default=float))
-    lines = ["| scene | focus (m) | largest blur (px) | slices | PSNR_ob node group | Defocus node | "
-             "numpy default | sharp | node - Defocus | numpy - node |",
+    lines = ["| scene | focus (m) | largest blur (px) | slices | PSNR_ob node group | "
+             "Defocus node | numpy default | sharp | node - Defocus | numpy - node |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         n, dn, nd, s = (r[k]["psnr_ob"] for k in ("node_group", "defocus_node", "numpy_default",

@@ -216,23 +216,22 @@ def _model_gap(res: dict, frame: str, legacy: bool = False) -> tuple[float, np.n
 @pytest.fixture(scope="module")
 def cards(tmp_path_factory):
     """The checker wall at 6 m behind a card at 1.5 m; focus keyed 6 m (frame 1) and
-    1.5 m (frame 2); Convolve and the Inpaint fill."""
+    1.5 m (frame 2); the operator's defaults (Convolve on 5.x, the Inpaint fill)."""
     pytest.importorskip("bpy")
     work = tmp_path_factory.mktemp("nodegroup_cards")
     res = _session(sys.executable, "render", _render_args(
-        work, frames=[1, 2], keys={"focus": [[1, 6.0], [2, 1.5]]}, blur="CONVOLVE",
-        save=str(work / "cards.blend")))
+        work, frames=[1, 2], keys={"focus": [[1, 6.0], [2, 1.5]]}, save=str(work / "cards.blend")))
     return res, work
 
 
 @pytest.fixture(scope="module")
 def sphere(tmp_path_factory):
-    """A sphere and a card before a wall; the operator run twice: its defaults, then at
-    most 3 slices (regenerated in place)."""
+    """A sphere and a card before a wall; the operator run twice: its defaults (Convolve
+    on 5.x), then Bokeh Blur with at most 3 slices (regenerated in place)."""
     pytest.importorskip("bpy")
     work = tmp_path_factory.mktemp("nodegroup_sphere")
     res = _session(sys.executable, "render", _render_args(
-        work, scene="sphere", focus=2.5, regenerate={"max_slices": 3}))
+        work, scene="sphere", focus=2.5, regenerate={"blur": "BOKEH", "max_slices": 3}))
     return res, work
 
 
@@ -299,8 +298,7 @@ def test_reopened_without_the_extension_renders_identically(cards):
 def test_structural_options_regenerate_the_group_in_place(sphere):
     res, _ = sphere
     first, second = res["first_spec"], res["spec"]
-    # Auto picks Bokeh Blur for blurs this small (at most 5.8 px here)
-    assert first["blur"] == second["blur"] == "bokeh"
+    assert first["blur"] == "convolve" and second["blur"] == "bokeh"
     assert len(second["disparities"]) <= 3 < len(first["disparities"])
     assert [g for g in res["groups"] if g.startswith(ng.GROUP_NAME)] == [ng.GROUP_NAME]
 

@@ -8,9 +8,11 @@ Usage: python nodegroup_session.py render JSON   (builds a small Cycles scene, a
 
 Prints one line ``RESULT {json}``. ``MPIB_EXTRA_SITE`` (a site-packages folder) is added at
 the end of ``sys.path`` for the project's dependencies (OpenEXR, SciPy) when this Blender's
-Python lacks them (a second bpy environment of the same Python version). The scenes are emissive (no lighting noise): a
-checker wall behind one or two foreground objects; the camera sits at the origin looking
-down -Z with a 100 mm lens on a 36 mm sensor (sensor fit horizontal) and f/1.
+Python lacks them (a second bpy environment of the same Python version).
+
+The scenes are emissive (no lighting noise): a checker wall behind one or two foreground
+objects; the camera sits at the origin looking down -Z with a 100 mm lens on a 36 mm
+sensor (sensor fit horizontal) and f/1.
 """
 
 import json
