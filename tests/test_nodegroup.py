@@ -252,6 +252,29 @@ def test_operator_adds_the_node_with_simple_camera_drivers(cards):
         assert (v["Resolution X"], v["Resolution Y"], v["Unit Scale"]) == (64.0, 48.0, 1.0)
 
 
+@pytest.mark.parametrize("fit, size", [("AUTO", (48, 64)), ("VERTICAL", (64, 48))])
+def test_drivers_give_the_thin_lens_of_the_camera(tmp_path, fit, size):
+    """A moved and turned camera focused on an object, at 50 % resolution, with the
+    sensor fits that need the Sensor Width driver's conversion (a portrait AUTO fit and
+    a VERTICAL one; HORIZONTAL is the other tests' camera): the blur parameter the node computes from its driven inputs is the one
+    camera.blender_camera gives (float32: relative 1e-5), and its focus distance is the
+    object's planar depth along the view axis. Without a render the slices come from
+    the objects' bounding boxes."""
+    pytest.importorskip("bpy")
+    res = _session(sys.executable, "drivers", {"scene": "sphere", "size": list(size),
+                                               "fit": fit, "root": str(ROOT),
+                                               "out_dir": str(tmp_path)})
+    assert res["operator"] == ["FINISHED"] and "bounding boxes" in res["message"]
+    v = res["values"]
+    W, H = size[0] // 2, size[1] // 2
+    assert (v["Resolution X"], v["Resolution Y"]) == (W, H)
+    cam = blender_camera(v["Focal Length"], 36.0, 20.0, fit, W, H, 2.0, 5.0)
+    nodes = ng.evaluate(ng.describe(ng.GroupSpec(**res["spec"])), np.ones((H, W, 4)),
+                        np.ones((H, W)), v, keep=True)["nodes"]
+    assert float(nodes["blur_parameter"]) == pytest.approx(cam.blur_parameter, rel=1e-5)
+    assert v["Focus Distance"] == pytest.approx(res["planar_depth"], rel=1e-5)
+
+
 def test_group_output_equals_the_numpy_model(cards, sphere):
     """Convolve + Inpaint (cards, both frames) and Bokeh Blur + Inpaint (sphere): the
     compositor's output is the model's to MODEL_TOL, and it is not the sharp image."""

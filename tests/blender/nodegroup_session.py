@@ -182,6 +182,39 @@ if command == "render":
         cam.dof.use_dof = True
         sc.cycles.samples = args["dof_spp"]
         out["dof"] = render_to(sc, os.path.join(work, "dof.exr"))
+elif command == "drivers":
+    # no render: the operator places the slices from the bounding boxes; the camera is
+    # moved, turned, and focused on an object, with the sensor fit and size given
+    sc = build(args["scene"], tuple(args["size"]), 1)
+    cam_obj = sc.camera
+    cam_obj.location = (0.3, -0.2, 0.5)
+    cam_obj.rotation_euler = (0.05, -0.04, 0.02)
+    cam = cam_obj.data
+    cam.sensor_fit = args["fit"]
+    cam.sensor_width, cam.sensor_height = 36.0, 20.0
+    cam.dof.aperture_fstop = 2.0
+    target = bpy.data.objects.new("focus_target", None)
+    sc.collection.objects.link(target)
+    target.location = (0.4, 0.3, -3.0)
+    cam.dof.focus_object = target
+    sc.render.resolution_percentage = 50
+    sys.path.insert(0, args["root"])
+    import blender_addon
+
+    blender_addon.register()
+    out["operator"] = sorted(bpy.ops.mpib.add_refocus_node())
+    out["message"] = sc.mpib.last_message
+    from mpib_validate import nodegroup as ng
+
+    node = ng.compositor_tree(sc, create=False).nodes[ng.GROUP_NAME]
+    sc.frame_set(1)
+    out["values"] = {s.name: float(s.default_value) for s in node.inputs
+                     if s.name not in ("Image", "Depth")}
+    cw = cam_obj.matrix_world
+    view = cw.col[2].xyz.normalized()
+    out["planar_depth"] = abs(view.dot(cw.translation - target.matrix_world.translation))
+    out["spec"] = json.loads(node.node_tree["mpib_spec"])
+    blender_addon.unregister()
 elif command == "reopen":
     bpy.ops.wm.open_mainfile(filepath=args["blend"])
     sc = bpy.context.scene
