@@ -8,6 +8,7 @@ def draw_settings(layout, context):
     col = layout.column(align=True)
     col.operator("mpib.refocus_render", icon="RENDER_RESULT")
     col.operator("mpib.refocus_file", icon="FILE_IMAGE")
+    col.operator("mpib.add_refocus_node", icon="NODETREE")
     box = layout.box()
     box.label(text="Focus")
     box.prop(s, "use_camera_focus")

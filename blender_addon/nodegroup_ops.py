@@ -1,0 +1,165 @@
+"""The "MPIB Refocus" compositor node: an operator that generates it and wires it in.
+
+The node is a node group of Blender's built-in nodes (``mpib_validate.nodegroup``), so
+it renders inside the compositor (F12, animation renders, render farms, the GPU
+compositor) and keeps working when the .blend is opened where the extension is not
+installed. This module only adapts Blender to it: where the slices go (the depth of
+the last render, else the objects' bounding boxes), the aperture over the animation,
+and the drivers from the scene camera.
+"""
+
+import os
+from types import SimpleNamespace
+
+import bpy
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty
+
+from . import calibrate
+
+BLUR_ITEMS = (
+    ("AUTO", "Auto", "Convolve on Blender 5.x (fractional radii), Bokeh Blur on 4.x"),
+    ("CONVOLVE", "Convolve", "FFT convolution with a disk built from nodes (Blender 5.x)"),
+    ("BOKEH", "Bokeh Blur", "Bokeh Blur with a round Bokeh Image: whole-pixel radii, cost "
+                            "growing with the square of the radius (faster for small blurs)"),
+)
+FILL_ITEMS = (
+    ("INPAINT", "Inpaint", "Extend each slice under the nearer ones (hidden background)"),
+    ("OFF", "Off", "No hidden background (cheaper; halos at blurred foreground edges)"),
+)
+
+
+def _lens_at(scene, frame):
+    """Camera settings (as for mpib_validate.camera.blender_camera) at ``frame``."""
+    r = scene.render
+    W = int(r.resolution_x * r.resolution_percentage / 100)
+    H = int(r.resolution_y * r.resolution_percentage / 100)
+    use_camera = SimpleNamespace(use_camera_focus=True, use_camera_fstop=True)
+    return calibrate.camera_settings(scene, use_camera, W, H, frame=frame)
+
+
+def _frames(scene, limit=500):
+    f0, f1 = scene.frame_start, scene.frame_end
+    step = max(1, (f1 - f0 + 1) // limit)
+    return range(f0, f1 + 1, step)
+
+
+def _last_depth(scene):
+    """The Depth pass of the last render this session kept, or None."""
+    path = getattr(getattr(scene, "mpib", None), "last_passes", "")
+    if not path or not os.path.exists(path):
+        return None
+    from mpib_validate.refocus import load_passes
+
+    passes = load_passes(path)
+    r = scene.render
+    W = int(r.resolution_x * r.resolution_percentage / 100)
+    H = int(r.resolution_y * r.resolution_percentage / 100)
+    return passes.depth if passes.depth.shape == (H, W) else None
+
+
+class MPIB_OT_add_refocus_node(bpy.types.Operator):
+    """Add (or regenerate) the MPIB Refocus node group between Render Layers and the
+    compositor output, driven by the scene camera's focus and aperture"""
+
+    bl_idname = "mpib.add_refocus_node"
+    bl_label = "Add Refocus Node"
+    bl_options = {"REGISTER", "UNDO"}
+
+    max_slices: IntProperty(name="Slices", default=8, min=1, max=32,
+                            description="Largest number of depth slices (more: slower, finer)")
+    tolerance_px: FloatProperty(name="Tolerance", default=0.5, min=0.05, max=16.0,
+                                description="Blur-radius error the slice spacing allows (px); "
+                                            "raised as needed to stay within Slices")
+    fill: EnumProperty(name="Fill", items=FILL_ITEMS, default="INPAINT")
+    blur: EnumProperty(name="Blur", items=BLUR_ITEMS, default="AUTO")
+    drivers: BoolProperty(name="Camera Drivers", default=True,
+                          description="Drive focus, f-stop, lens, sensor and resolution from "
+                                      "the scene camera (delete a driver to set it by hand)")
+
+    @classmethod
+    def poll(cls, context):
+        sc = context.scene
+        if sc is None or sc.camera is None or sc.camera.type != "CAMERA":
+            cls.poll_message_set("The scene needs a camera")
+            return False
+        return True
+
+    def execute(self, context):
+        from mpib_validate import nodegroup as ng
+        from mpib_validate.camera import blender_camera
+
+        scene = context.scene
+        legacy = ng.is_legacy_api(bpy)
+        if self.blur == "CONVOLVE" and legacy:
+            self.report({"ERROR"}, "Convolve needs Blender 5.0 or later; choose Bokeh Blur")
+            return {"CANCELLED"}
+        try:
+            cams = [blender_camera(**_lens_at(scene, f)) for f in _frames(scene)]
+            now = blender_camera(**_lens_at(scene, scene.frame_current))
+        except (calibrate.CalibrationError, ValueError) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        A = max(c.blur_parameter for c in cams)  # the widest aperture of the animation
+        depth = _last_depth(scene)
+        try:
+            if depth is not None:
+                d, tol = ng.place_slices(depth, now.blur_parameter, self.tolerance_px,
+                                         self.max_slices)
+                source = "the last render's depth"
+            else:
+                d, tol = ng.slices_for_intervals(ng.scene_disparity_intervals(scene),
+                                                 now.blur_parameter, self.tolerance_px,
+                                                 self.max_slices)
+                source = "the objects' bounding boxes (render once and regenerate for " \
+                         "slices on the rendered depth)"
+        except ValueError as exc:
+            self.report({"ERROR"}, f"cannot place slices: {exc}")
+            return {"CANCELLED"}
+        r_max = max(c.blur_parameter * max(abs(x - c.focus_disparity) for x in d) for c in cams)
+        blur = ("bokeh" if legacy else "convolve") if self.blur == "AUTO" else self.blur.lower()
+        spec = ng.make_spec(d, A, fill=self.fill.lower(), blur=blur,
+                            max_radius_px=max(r_max, now.blur_parameter * float(d[-1])))
+        graph = ng.describe(spec)
+        tree = ng.compositor_tree(scene, create=True)
+        node = tree.nodes.get(ng.GROUP_NAME)
+        group = node.node_tree if node is not None and ng.spec_of(node.node_tree) else None
+        group = ng.build_group(graph, group=group)
+        node = ng.install(scene, group)
+        scene.render.use_compositing = True
+        if self.drivers:
+            ng.add_camera_drivers(node, scene)
+        msg = (f"MPIB Refocus node: {len(d)} slices from {source}, tolerance {tol:.2g} px, "
+               f"fill {self.fill.lower()}, {'Convolve' if blur == 'convolve' else 'Bokeh Blur'}")
+        if legacy and blur == "bokeh":
+            side = max(now.width, now.height)
+            if r_max > 0.1 * side:
+                msg += (f"; blur radii up to {r_max:.0f} px are cut to {0.1 * side:.0f} px "
+                        f"(Bokeh Blur's limit in Blender 4.x, 10 % of the larger side)")
+        if hasattr(scene, "mpib"):
+            scene.mpib.last_message = msg
+        self.report({"INFO"}, msg)
+        return {"FINISHED"}
+
+
+def draw_add_menu(self, context):
+    if getattr(context.space_data, "tree_type", "") == "CompositorNodeTree":
+        self.layout.operator(MPIB_OT_add_refocus_node.bl_idname, text="MPIB Refocus",
+                             icon="NODETREE")
+
+
+_MENU = "NODE_MT_category_compositor_filter_blur"
+
+
+def register():
+    bpy.utils.register_class(MPIB_OT_add_refocus_node)
+    menu = getattr(bpy.types, _MENU, None)
+    if menu is not None:
+        menu.append(draw_add_menu)
+
+
+def unregister():
+    menu = getattr(bpy.types, _MENU, None)
+    if menu is not None:
+        menu.remove(draw_add_menu)
+    bpy.utils.unregister_class(MPIB_OT_add_refocus_node)
+

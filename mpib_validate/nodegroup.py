@@ -1,0 +1,1281 @@
+"""MPIB Refocus as a compositor node group made only of Blender's built-in nodes.
+
+A Python-defined node cannot execute in a compositor tree, but a node group of built-in
+nodes runs in Blender 4.2 to 5.x and keeps working when the .blend is opened without the
+extension (checked here on the CPU compositor of 5.0.1 and 4.2.23; every node used also
+has a GPU implementation, not checked here). This module writes Eq. 1 of the
+supplement as such a group. The graph is described ONCE, as data (:func:`describe`:
+a list of :class:`Op`), and that one description is
+
+- emitted for the 5.x API or the 4.2-4.5 API (:func:`build_group`), and
+- evaluated by a numpy model of the same nodes (:func:`evaluate`), so that the group's
+  output can be checked against it pixel for pixel.
+
+The graph (slices ``i = 0..N-1`` far to near at disparities ``d_i``, fixed when the
+group is generated; everything else is computed inside the graph, so drivers may
+animate focus and aperture):
+
+1. Blur parameter from the lens, as :func:`mpib_validate.camera.blender_camera`:
+   ``R = f_mm 1e-3 / (unit 2 N)`` (scene units), ``f_px = f_mm / sensor * W``,
+   ``A = R f_px``; focus ``d_f = 1 / z_f``; slice radius ``r_i = A |d_i - d_f|`` px.
+   "Sensor Width" is the sensor size across the image width for the camera's fit (the
+   drivers of :mod:`blender_addon.nodegroup_ops` compute it for AUTO and VERTICAL fits).
+2. Per pixel ``d = 1/Z`` from the Depth pass and the soft split between neighbouring
+   slices of :func:`mpib_validate.mpi.split_between_planes`: with
+   ``u = clamp((d - d_i) / (d_{i+1} - d_i))`` the near slice gets ``u alpha`` and the
+   far slice ``alpha (1 - u) / (1 - u alpha)``, so that "over" gives back the pixel's
+   alpha and Eq. 16 its disparity. Slice ``i`` is the image times its factor (premultiplied
+   colour and alpha).
+   Edge pixels: the Depth pass holds the surface at the pixel centre, but an
+   anti-aliased pixel next to nearer content (within a pixel, by more than
+   ``EDGE_JUMP_PX`` of blur radius: a Dilate/Erode of ``d``) mixes in the nearer colour,
+   which the far slice would smear into a halo when it blurs. ``"soft"`` edges (with the
+   fill): the far slice takes the fill's clean colour ``F`` there, and the nearer slice
+   (that of the dilated ``d``) the rest, ``max(I - (1 - b) F, 0)`` at alpha ``b =
+   EDGE_ALPHA``, in front: their pinhole composite is the pixel. ``"hard"`` edges
+   (without fill): the pixel goes wholly to the nearer slice (``d`` dilated).
+3. Hidden background (optional): the Inpaint node extends the pixels that belong wholly
+   to slice ``i`` outwards by ``D_i = ceil(A (d_max - d_i)) + 1`` px
+   (the largest parallax between the slice and the nearest content); the extension is
+   kept only where nearer content covers the slice (``d >= d_{i+1}``), under the slice.
+4. A disk blur of radius ``r_i`` per slice: Bokeh Blur with a round Bokeh Image (both
+   APIs; the radius is truncated to whole pixels, 5.x: Size in pixels, 4.x: Size in
+   percent of the larger image side, at most 10 %), or on 5.x the Convolve node with an
+   anti-aliased disk kernel ``clamp(r + 1/2 - |x|, 0, 1)`` built from nodes (fractional
+   radii; FFT, zero padded borders).
+5. Eq. 1 far to near with Alpha Over (premultiplied): ``acc <- acc (1 - a_i K_i) +
+   (c_i a_i, a_i) K_i``; output colour ``acc_rgb / acc_a`` (clamped >= 0), alpha 1; the
+   second output "Alpha" is ``acc_a``, the coverage of Eq. 1.
+
+Slices are placed from the depth of the last render (:func:`place_slices`): the
+adaptive planes of :func:`mpib_validate.mpi.adaptive_planes` (only where content is,
+spaced for a blur-radius quantisation error of ``tolerance_px``), with the tolerance
+raised until at most ``max_slices`` remain.
+
+The numpy model follows the nodes as Blender 5.0 implements them on the CPU (float32
+arithmetic, Bokeh Blur's sampled kernel and extended borders, Convolve's zero-padded
+FFT, Inpaint's jump flooding and smoothing; the sources were read and each node checked
+against Blender), and the 4.2-4.5 Bokeh Blur for the legacy API (the same weights, as
+measured with impulses, except on the disk's rim at some radii: 4, 9, 13, 16 ... px);
+the 4.x Inpaint node is a different algorithm and is not modelled.
+
+``bpy`` is imported inside the functions only, so the package imports without it.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+
+import numpy as np
+
+GROUP_NAME = "MPIB Refocus"
+
+# --------------------------------------------------------------------------------------
+# Version-dependent helpers. TEMPORARY: the shared module mpib_validate.blender_compat
+# (another branch) provides these under the same names; swap at merge.
+
+
+def is_legacy_api(bpy) -> bool:
+    """True for Blender 4.2-4.5 (``scene.node_tree``, Composite node, node options as
+    properties); False for 5.x (``scene.compositing_node_group``, options as sockets)."""
+    return tuple(bpy.app.version) < (5, 0, 0)
+
+
+def compositor_tree(scene, create: bool = True):
+    """The scene's compositor node tree (created if missing and ``create``), or None."""
+    import bpy
+
+    if not is_legacy_api(bpy):
+        tree = scene.compositing_node_group
+        if tree is None and create:
+            tree = bpy.data.node_groups.new(f"{scene.name} Compositor", "CompositorNodeTree")
+            scene.compositing_node_group = tree
+        return tree
+    if create:
+        scene.use_nodes = True
+    return scene.node_tree
+
+
+def tree_output(tree):
+    """The node that takes the final image: 5.x a Group Output with an ``Image`` input
+    (the interface socket is added if missing), 4.x the Composite node (added if
+    missing). Its image input is ``node.inputs[0]``."""
+    import bpy
+
+    if not is_legacy_api(bpy):
+        if not any(s.in_out == "OUTPUT" and s.name == "Image" for s in _interface_sockets(tree)):
+            tree.interface.new_socket("Image", in_out="OUTPUT", socket_type="NodeSocketColor")
+        outs = [n for n in tree.nodes if n.bl_idname == "NodeGroupOutput"]
+        node = next((n for n in outs if n.is_active_output), outs[0] if outs else None)
+        return node if node is not None else tree.nodes.new("NodeGroupOutput")
+    node = next((n for n in tree.nodes if n.bl_idname == "CompositorNodeComposite"), None)
+    return node if node is not None else tree.nodes.new("CompositorNodeComposite")
+
+
+#: Node idnames per API: (5.x, 4.2-4.5).
+NODE_IDS = {
+    "math": ("ShaderNodeMath", "CompositorNodeMath"),
+    "separate": ("CompositorNodeSeparateColor", "CompositorNodeSeparateColor"),
+    "combine": ("CompositorNodeCombineColor", "CompositorNodeCombineColor"),
+    "over": ("CompositorNodeAlphaOver", "CompositorNodeAlphaOver"),
+    "bokeh_image": ("CompositorNodeBokehImage", "CompositorNodeBokehImage"),
+    "bokeh_blur": ("CompositorNodeBokehBlur", "CompositorNodeBokehBlur"),
+    "inpaint": ("CompositorNodeInpaint", "CompositorNodeInpaint"),
+    "dilate": ("CompositorNodeDilateErode", "CompositorNodeDilateErode"),
+    "convolve": ("CompositorNodeConvolve", None),
+    "crop": ("CompositorNodeCrop", "CompositorNodeCrop"),
+    "image_coordinates": ("CompositorNodeImageCoordinates", None),
+    "separate_xyz": ("ShaderNodeSeparateXYZ", None),
+    "group": ("CompositorNodeGroup", "CompositorNodeGroup"),
+    "render_layers": ("CompositorNodeRLayers", "CompositorNodeRLayers"),
+}
+
+
+def node_id(kind: str, legacy: bool) -> str:
+    idname = NODE_IDS[kind][1 if legacy else 0]
+    if idname is None:
+        raise ValueError(f"the {kind} node does not exist in Blender 4.2-4.5")
+    return idname
+
+
+def set_option(node, socket: str, value, prop: str | None = None) -> None:
+    """Set a node option: the input socket ``socket`` (5.x) or else the property
+    ``prop`` (4.x; default: ``socket`` lower-cased with underscores)."""
+    if socket in node.inputs and not node.inputs[socket].is_linked:
+        node.inputs[socket].default_value = value
+    else:
+        setattr(node, prop or socket.lower().replace(" ", "_"), value)
+
+
+def _interface_sockets(tree):
+    return [item for item in tree.interface.items_tree if item.item_type == "SOCKET"]
+
+
+# --------------------------------------------------------------------------------------
+# The group's interface
+
+#: Group inputs: (name, socket type, default, description). Lengths in scene units,
+#: the lens in millimetres.
+INPUTS = (
+    ("Image", "NodeSocketColor", (0.0, 0.0, 0.0, 1.0), "All-in-focus render (Render Layers Image)"),
+    ("Depth", "NodeSocketFloat", 1e10, "Depth pass (Render Layers Depth), scene units"),
+    ("Focus Distance", "NodeSocketFloat", 10.0, "Planar distance in focus, scene units"),
+    ("F-Stop", "NodeSocketFloat", 2.8, "Aperture f-number"),
+    ("Focal Length", "NodeSocketFloat", 50.0, "Lens focal length, mm"),
+    ("Sensor Width", "NodeSocketFloat", 36.0,
+     "Sensor size across the image width for the camera's sensor fit, mm"),
+    ("Resolution X", "NodeSocketFloat", 1920.0, "Rendered image width, pixels"),
+    ("Resolution Y", "NodeSocketFloat", 1080.0, "Rendered image height, pixels"),
+    ("Unit Scale", "NodeSocketFloat", 1.0, "Metres per scene unit"),
+)
+OUTPUTS = (
+    ("Image", "NodeSocketColor", "Refocused image (normalised Eq. 1, alpha 1)"),
+    ("Alpha", "NodeSocketFloat", "Coverage of Eq. 1 (acc_a)"),
+)
+
+#: Pixels within this many pixels of nearer content are edge pixels (see step 2).
+EDGE_PX = 1
+#: An edge pixel's nearer neighbour is nearer by more than this blur-radius step (px).
+EDGE_JUMP_PX = 1.0
+#: The share of an edge pixel given to the nearer side ("soft" edges).
+EDGE_ALPHA = 0.5
+#: Smallest normaliser the final division uses (below it the colour is ~0 anyway).
+NORM_FLOOR = 1e-6
+#: The Bokeh Image node's fixed resolution (5.x and 4.x).
+BOKEH_IMAGE_SIZE = 512
+
+
+# --------------------------------------------------------------------------------------
+# Slice placement
+
+
+def slices_for_intervals(intervals, blur_parameter: float, tolerance_px: float = 0.5,
+                         max_slices: int = 8) -> tuple[np.ndarray, float]:
+    """Slice disparities (far to near) for content in disparity intervals.
+
+    ``intervals``: ``[(lo, hi), ...]``, or a function of the plane step (disparity) that
+    returns them (content split where a gap exceeds the step, so that gaps close as the
+    tolerance grows). The planes are :func:`mpib_validate.mpi.adaptive_planes` (only where
+    content is, spaced for a blur-radius quantisation error of at most the tolerance);
+    the tolerance is doubled, then refined by bisection to 0.1 %, until at most
+    ``max_slices`` remain. If no tolerance gets there (more separate pieces of content
+    than slices), the slices are spread evenly over the whole disparity range. Returns
+    ``(disparities, tolerance_px_used)``.
+    """
+    from .mpi import adaptive_planes, plane_spacing
+
+    if max_slices < 1:
+        raise ValueError(f"max_slices must be >= 1, got {max_slices}")
+    if not blur_parameter > 0:
+        raise ValueError(f"the blur parameter must be > 0, got {blur_parameter}")
+    get = intervals if callable(intervals) else (lambda step, iv=list(intervals): iv)
+    if not get(plane_spacing(blur_parameter, tolerance_px)):
+        raise ValueError("no content to place slices on")
+
+    def planes(tol):
+        return adaptive_planes(get(plane_spacing(blur_parameter, tol)), blur_parameter, tol)
+
+    if len(planes(tolerance_px)) <= max_slices:
+        return planes(tolerance_px), float(tolerance_px)
+    lo, hi = tolerance_px, 2.0 * tolerance_px
+    for _ in range(40):
+        if len(planes(hi)) <= max_slices:
+            break
+        lo, hi = hi, 2.0 * hi
+    else:  # more separate pieces than slices, at any tolerance
+        ends = np.array(get(plane_spacing(blur_parameter, tolerance_px)), np.float64)
+        d0, d1 = float(ends.min()), float(ends.max())
+        if max_slices == 1 or d1 <= d0:
+            return np.array([0.5 * (d0 + d1)]), math.inf
+        d = np.linspace(d0, d1, max_slices)
+        return d, float(blur_parameter * (d[1] - d[0]) / 2.0)
+    while hi - lo > 1e-3 * hi:
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if len(planes(mid)) > max_slices else (lo, mid)
+    return planes(hi), float(hi)
+
+
+def place_slices(depth: np.ndarray, blur_parameter: float, tolerance_px: float = 0.5,
+                 max_slices: int = 8, far_limit: float | None = None) -> tuple[np.ndarray, float]:
+    """Slice disparities (far to near) for the depth present in a render: the content
+    intervals of its disparity ``1/Z`` (gaps wider than one plane step split them; depth
+    at or beyond ``far_limit`` is at infinity) through :func:`slices_for_intervals`."""
+    from .passes import DEFAULT_FAR_LIMIT, _content_intervals, depth_to_disparity
+
+    D = depth_to_disparity(depth, DEFAULT_FAR_LIMIT if far_limit is None else far_limit)
+    values = np.unique(np.round(D, 12))
+    return slices_for_intervals(lambda step: _content_intervals(values, step), blur_parameter,
+                                tolerance_px, max_slices)
+
+
+# --------------------------------------------------------------------------------------
+# The description
+
+
+@dataclass(frozen=True)
+class Ref:
+    """Output ``out`` of the node named ``node``."""
+
+    node: str
+    out: int = 0
+
+
+@dataclass(frozen=True)
+class GroupIn:
+    """The group input socket named ``name``."""
+
+    name: str
+
+
+@dataclass(frozen=True)
+class Op:
+    """One node of the graph: its abstract kind, arguments (:class:`Ref`,
+    :class:`GroupIn` or a constant) and static options."""
+
+    name: str
+    kind: str
+    args: tuple = ()
+    params: tuple = ()  # (key, value) pairs
+
+    def param(self, key, default=None):
+        return dict(self.params).get(key, default)
+
+
+#: Abstract kinds: arguments, and what the node computes (images are premultiplied RGBA).
+KINDS = {
+    "math": "(a, b): Math node, params op and clamp (float32, DIVIDE by 0 gives 0)",
+    "separate": "(image,): R, G, B, A",
+    "combine": "(r, g, b, a): an image",
+    "over": "(background, foreground): fg + bg (1 - clamp(fg.a))",
+    "bokeh_disk": "(): round Bokeh Image (512 x 512, Roundness 1)",
+    "bokeh_blur": "(image, bokeh, radius_px): constant-size Bokeh Blur, radius truncated",
+    "disk_kernel": "(radius_px,): K x K kernel clamp(r + 1/2 - |x|, 0, 1), param size K (5.x)",
+    "convolve": "(image, kernel): Convolve, kernel normalised, zero-padded FFT (5.x)",
+    "inpaint": "(image,): Inpaint, param distance (px)",
+    "dilate": "(value,): Dilate/Erode in Step mode, param size n: max over (2n+1)^2",
+}
+
+
+@dataclass(frozen=True)
+class GroupSpec:
+    """What fixes the group's structure (a change regenerates it).
+
+    Attributes:
+        disparities: slice disparities, far to near (1/scene-unit).
+        fill: ``"inpaint"`` (hidden background behind each slice) or ``"off"``.
+        blur: ``"bokeh"`` (Bokeh Blur, both APIs) or ``"convolve"`` (5.x only).
+        fill_px: Inpaint distance per slice (pixels; ignored without fill).
+        kernel_radius_px: half size of the Convolve kernel image (its size is
+            ``2 k + 3``); slice radii above ``k + 1/2`` are cut to that square.
+        edge: how anti-aliased edge pixels are shared (see step 2 of the module
+            docstring): ``"soft"`` (needs the fill) or ``"hard"``.
+        edge_jump: disparity step to nearer content that makes a pixel an edge pixel
+            (``"soft"``; :data:`EDGE_JUMP_PX` / A).
+    """
+
+    disparities: tuple
+    fill: str = "inpaint"
+    blur: str = "bokeh"
+    fill_px: tuple = ()
+    kernel_radius_px: int = 0
+    edge: str = "soft"
+    edge_jump: float = 0.0
+
+    def __post_init__(self):
+        d = tuple(float(x) for x in self.disparities)
+        if not d:
+            raise ValueError("a node group needs at least one slice")
+        if any(b <= a for a, b in zip(d, d[1:])):
+            raise ValueError(f"slice disparities must increase (far to near): {d}")
+        if self.fill not in ("inpaint", "off"):
+            raise ValueError(f"fill must be 'inpaint' or 'off', got {self.fill!r}")
+        if self.blur not in ("bokeh", "convolve"):
+            raise ValueError(f"blur must be 'bokeh' or 'convolve', got {self.blur!r}")
+        if self.edge not in ("soft", "hard"):
+            raise ValueError(f"edge must be 'soft' or 'hard', got {self.edge!r}")
+        object.__setattr__(self, "edge_jump", float(self.edge_jump))
+        object.__setattr__(self, "disparities", d)
+        fill = tuple(int(v) for v in self.fill_px) or (0,) * len(d)
+        if len(fill) != len(d):
+            raise ValueError(f"{len(fill)} fill distances for {len(d)} slices")
+        object.__setattr__(self, "fill_px", fill)
+
+
+def fill_distances(disparities, blur_parameter: float, cap: int = 256) -> tuple:
+    """Inpaint distance per slice: ``ceil(A (d_max - d_i)) + 1`` px (the largest parallax
+    between the slice and the nearest content), at most ``cap``."""
+    d = np.asarray(disparities, np.float64)
+    return tuple(int(min(cap, math.ceil(blur_parameter * (d[-1] - x)) + 1)) for x in d)
+
+
+#: Largest Convolve kernel half size: the kernel image is cut from the 512 px Bokeh Image.
+KERNEL_CAP = (BOKEH_IMAGE_SIZE - 3) // 2
+
+
+def make_spec(disparities, blur_parameter: float, *, fill: str = "inpaint",
+              blur: str = "bokeh", max_radius_px: float | None = None) -> GroupSpec:
+    """The structure for given slices: fill distances by :func:`fill_distances`, and
+    (Convolve) a kernel for radii up to ``max_radius_px`` (default ``A d_max``, the
+    largest radius of a focus at infinity or anywhere within the slices), at most
+    :data:`KERNEL_CAP`. The kernel's size does not change the Convolve node's cost (its
+    FFT pads the image by its own size)."""
+    d = np.asarray(disparities, np.float64)
+    if max_radius_px is None:
+        max_radius_px = blur_parameter * float(max(d[-1], d[-1] - d[0]))
+    k = min(KERNEL_CAP, int(math.ceil(max_radius_px)) + 1) if blur == "convolve" else 0
+    return GroupSpec(tuple(d), fill, blur, fill_distances(d, blur_parameter), k,
+                     edge="soft" if fill == "inpaint" else "hard",
+                     edge_jump=EDGE_JUMP_PX / blur_parameter)
+
+
+def spec_from_render(depth: np.ndarray, blur_parameter: float, *, max_slices: int = 8,
+                     tolerance_px: float = 0.5, fill: str = "inpaint", blur: str = "bokeh",
+                     max_radius_px: float | None = None) -> GroupSpec:
+    """The structure for a render's depth: slices by :func:`place_slices`, the rest by
+    :func:`make_spec`."""
+    d, _ = place_slices(depth, blur_parameter, tolerance_px, max_slices)
+    return make_spec(d, blur_parameter, fill=fill, blur=blur, max_radius_px=max_radius_px)
+
+
+class _Builder:
+    def __init__(self):
+        self.ops: list[Op] = []
+
+    def add(self, name, kind, *args, **params) -> Ref:
+        self.ops.append(Op(name, kind, tuple(args), tuple(sorted(params.items()))))
+        return Ref(name)
+
+    def math(self, name, op, a, b=0.0, clamp=False) -> Ref:
+        return self.add(name, "math", a, b, op=op, clamp=bool(clamp))
+
+
+@dataclass(frozen=True)
+class Graph:
+    spec: GroupSpec
+    ops: tuple
+    outputs: tuple  # (group output name, Ref)
+
+
+def describe(spec: GroupSpec) -> Graph:
+    """The node graph of :class:`GroupSpec` as data (see the module docstring)."""
+    g = _Builder()
+    d = spec.disparities
+    n = len(d)
+    # 1. blur parameter and focus
+    fl = GroupIn("Focal Length")
+    t1 = g.math("lens_m", "MULTIPLY", fl, 1e-3)
+    t2 = g.math("unit_x2", "MULTIPLY", GroupIn("Unit Scale"), 2.0)
+    t3 = g.math("unit_x2N", "MULTIPLY", t2, GroupIn("F-Stop"))
+    R = g.math("aperture_radius", "DIVIDE", t1, t3)
+    t4 = g.math("lens_per_sensor", "DIVIDE", fl, GroupIn("Sensor Width"))
+    fpx = g.math("focal_px", "MULTIPLY", t4, GroupIn("Resolution X"))
+    A = g.math("blur_parameter", "MULTIPLY", R, fpx)
+    df = g.math("focus_disparity", "DIVIDE", 1.0, GroupIn("Focus Distance"))
+    radius = []
+    for i, di in enumerate(d):
+        e = g.math(f"s{i}.offset", "SUBTRACT", di, df)
+        ab = g.math(f"s{i}.abs", "ABSOLUTE", e)
+        radius.append(g.math(f"s{i}.radius", "MULTIPLY", A, ab))
+    # 2. disparity, the split between slices
+    g.add("image", "separate", GroupIn("Image"))
+    ch = [Ref("image", k) for k in range(4)]
+    alpha = ch[3]
+    raw = g.math("disparity_raw", "DIVIDE", 1.0, GroupIn("Depth"))
+    dil = g.add("disparity_dilated", "dilate", raw, size=EDGE_PX)
+    soft = spec.edge == "soft" and spec.fill == "inpaint" and n >= 2
+    own_d = raw if soft else dil  # "hard": edge pixels go wholly to the nearer slice
+
+    def split(tag, dv):
+        lt_, ge_ = {}, {}
+        for k in range(1, n):
+            lt_[k] = g.math(f"{tag}lt{k}", "LESS_THAN", dv, d[k])  # d < d_k
+            ge_[k] = g.math(f"{tag}ge{k}", "SUBTRACT", 1.0, lt_[k])  # d >= d_k
+        own_ = {}  # d in [d_i, d_{i+1}): the slice whose far role the pixel is in
+        for i in range(n):
+            own_[i] = (1.0 if n == 1 else lt_[1] if i == 0 else ge_[n - 1] if i == n - 1
+                       else g.math(f"{tag}own{i}", "MULTIPLY", ge_[i], lt_[i + 1]))
+        return lt_, ge_, own_
+
+    u = {}
+    for k in range(n - 1):
+        off = g.math(f"u{k}.offset", "SUBTRACT", own_d, d[k])
+        u[k] = g.math(f"u{k}", "MULTIPLY", off, 1.0 / (d[k + 1] - d[k]), clamp=True)
+    lt, ge, own = split("", own_d)
+
+    def scaled(name, image_channels, factor):
+        parts = [g.math(f"{name}.{c}", "MULTIPLY", image_channels[j], factor)
+                 for j, c in enumerate("rgba")]
+        return g.add(name, "combine", *parts)
+
+    # 3. hidden background: each slice's own pixels (not its edge ring) extended
+    has_fill = [spec.fill == "inpaint" and i <= n - 2 and spec.fill_px[i] > 0 for i in range(n)]
+    if soft:  # the edge ring: nearer content within a pixel, by more than the jump
+        gap = g.math("edge.gap", "SUBTRACT", dil, raw)
+        ring = g.math("edge.ring", "GREATER_THAN", gap, spec.edge_jump)
+    filled = {}
+    for i in range(n):
+        if not has_fill[i]:
+            continue
+        src_mask = own[i] if not soft else g.math(f"s{i}.own_core", "MULTIPLY", own[i],
+                                                   g.math(f"s{i}.not_ring", "SUBTRACT", 1.0, ring))
+        src = scaled(f"s{i}.fill_src", ch, src_mask)
+        g.add(f"s{i}.filled", "separate",
+              g.add(f"s{i}.inpaint", "inpaint", src, distance=int(spec.fill_px[i])))
+        filled[i] = [Ref(f"s{i}.filled", k) for k in range(4)]
+    colour = ch
+    if soft:
+        # the far side of an edge pixel: its own slice's fill (clean colour); the near side
+        # the rest, max(I - (1 - b) F, 0) at alpha b, in the nearer (dilated) slice
+        fc = None
+        for i in filled:
+            part = scaled(f"edge.fill{i}", filled[i], own[i])
+            fc = part if fc is None else g.add(f"edge.fills{i}", "over", fc, part)
+        g.add("edge.fill", "separate", fc)
+        fcc = [Ref("edge.fill", k) for k in range(4)]
+        ring_f = g.math("edge.ring_filled", "MULTIPLY", ring, fcc[3])
+        keep = g.math("edge.keep", "SUBTRACT", 1.0, ring_f)
+        cols = []
+        for k, c in enumerate("rgb"):
+            mine = g.math(f"edge.own.{c}", "MULTIPLY", ch[k], keep)
+            theirs = g.math(f"edge.far.{c}", "MULTIPLY", fcc[k], ring_f)
+            cols.append(g.math(f"edge.colour.{c}", "ADD", mine, theirs))
+        colour = cols + [alpha]
+        near = []
+        for k, c in enumerate("rgb"):
+            far_part = g.math(f"edge.farpart.{c}", "MULTIPLY", fcc[k], 1.0 - EDGE_ALPHA)
+            rest = g.math(f"edge.rest.{c}", "SUBTRACT", ch[k], far_part)
+            pos = g.math(f"edge.rest+.{c}", "MAXIMUM", rest, 0.0)
+            near.append(g.math(f"edge.near.{c}", "MULTIPLY", pos, ring_f))
+        near.append(g.math("edge.near.a", "MULTIPLY", ring_f, EDGE_ALPHA))
+        _, _, own_near = split("dil.", dil)
+
+    bokeh = g.add("bokeh", "bokeh_disk") if spec.blur == "bokeh" else None
+    acc = None
+    for i in range(n):
+        parts = []
+        if i >= 1:  # near role: u_{i-1} on [d_{i-1}, d_i)
+            parts.append(u[i - 1] if i == n - 1 else
+                         g.math(f"s{i}.near", "MULTIPLY", u[i - 1], lt[i]))
+        if i <= n - 2:  # far role: (1 - u_i) / (1 - u_i alpha) on [d_i, d_{i+1})
+            one_u = g.math(f"s{i}.1-u", "SUBTRACT", 1.0, u[i])
+            ua = g.math(f"s{i}.u*a", "MULTIPLY", u[i], alpha)
+            den = g.math(f"s{i}.1-ua", "SUBTRACT", 1.0, ua)
+            far = g.math(f"s{i}.far", "DIVIDE", one_u, den)
+            parts.append(far if i == 0 else g.math(f"s{i}.far_in", "MULTIPLY", far, ge[i]))
+        if not parts:
+            factor = 1.0
+        elif len(parts) == 1:
+            factor = parts[0]
+        else:
+            factor = g.math(f"s{i}.factor", "ADD", parts[0], parts[1])
+        layer = scaled(f"s{i}.layer", colour, factor)
+        if i in filled:  # under nearer content (d >= d_{i+1}), behind the slice
+            fill = scaled(f"s{i}.fill", filled[i], ge[i + 1])
+            layer = g.add(f"s{i}.with_fill", "over", fill, layer)
+        if soft and i >= 1:  # the near side of edge pixels, in front
+            edge = scaled(f"s{i}.edge", near, own_near[i])
+            layer = g.add(f"s{i}.with_edge", "over", layer, edge)
+        # 4. the disk blur
+        if spec.blur == "bokeh":
+            blurred = g.add(f"s{i}.blur", "bokeh_blur", layer, bokeh, radius[i])
+        else:
+            kern = g.add(f"s{i}.kernel", "disk_kernel", radius[i],
+                         size=2 * int(spec.kernel_radius_px) + 3)
+            blurred = g.add(f"s{i}.blur", "convolve", layer, kern)
+        # 5. Eq. 1, far to near
+        acc = blurred if acc is None else g.add(f"acc{i}", "over", acc, blurred)
+    g.add("acc", "separate", acc)
+    a_acc = Ref("acc", 3)
+    den = g.math("norm", "MAXIMUM", a_acc, NORM_FLOOR)
+    rgb = []
+    for k, c in enumerate("rgb"):
+        q = g.math(f"out.{c}/a", "DIVIDE", Ref("acc", k), den)
+        rgb.append(g.math(f"out.{c}", "MAXIMUM", q, 0.0))
+    out = g.add("out", "combine", *rgb, 1.0)
+    cov = g.math("coverage", "MAXIMUM", a_acc, 0.0, clamp=True)
+    return Graph(spec, tuple(g.ops), (("Image", out), ("Alpha", cov)))
+
+
+# --------------------------------------------------------------------------------------
+# The numpy model of the same nodes
+
+_F = np.float32
+
+
+def _math(op: str, a, b, clamp: bool):
+    a = np.asarray(a, _F)
+    b = np.asarray(b, _F)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        if op == "ADD":
+            r = a + b
+        elif op == "SUBTRACT":
+            r = a - b
+        elif op == "MULTIPLY":
+            r = a * b
+        elif op == "DIVIDE":
+            r = np.where(b == 0, _F(0), a / np.where(b == 0, _F(1), b))
+        elif op == "ABSOLUTE":
+            r = np.abs(a)
+        elif op == "LESS_THAN":
+            r = (a < b).astype(_F)
+        elif op == "GREATER_THAN":
+            r = (a > b).astype(_F)
+        elif op == "MAXIMUM":
+            r = np.maximum(a, b)
+        elif op == "MINIMUM":
+            r = np.minimum(a, b)
+        elif op == "SQRT":
+            r = np.where(a > 0, np.sqrt(np.maximum(a, 0)), _F(0))
+        elif op == "FLOOR":
+            r = np.floor(a)
+        else:
+            raise ValueError(f"math op {op!r} is not modelled")
+    r = np.asarray(r, _F)
+    return np.clip(r, _F(0), _F(1)) if clamp else r
+
+
+def bokeh_disk_image(size: int = BOKEH_IMAGE_SIZE) -> np.ndarray:
+    """The round Bokeh Image (Roundness 1, no catadioptric, no shift), one channel
+    ``(size, size)`` with row 0 at the bottom: 1 inside the circle of radius ``size/2``
+    about the centre (texel centres at ``texel + 1/2``), ``R - dist`` within a pixel of
+    its edge, 0 outside."""
+    R = _F(size / 2.0)
+    t = np.arange(size, dtype=_F) + _F(0.5) - R
+    dist = np.sqrt(t[None, :] ** 2 + t[:, None] ** 2).astype(_F)
+    v = np.where(dist > R, _F(0), np.where(R - dist < 1, R - dist, _F(1)))
+    return v.astype(_F)
+
+
+def _sample_bilinear_extended(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Blender's ``sample_bilinear_extended``: normalised coordinates ``(u, v)`` (grids),
+    texel coordinates ``u W - 1/2``, bilinear, edges clamped. ``img`` rows bottom-up."""
+    h, w = img.shape
+    x = u * w - _F(0.5)
+    y = v * h - _F(0.5)
+    x0 = np.floor(x).astype(np.int64)
+    y0 = np.floor(y).astype(np.int64)
+    fx = (x - x0).astype(_F)
+    fy = (y - y0).astype(_F)
+
+    def at(yy, xx):
+        return img[np.clip(yy, 0, h - 1), np.clip(xx, 0, w - 1)]
+
+    top = at(y0, x0) * (1 - fx) + at(y0, x0 + 1) * fx
+    bot = at(y0 + 1, x0) * (1 - fx) + at(y0 + 1, x0 + 1) * fx
+    return (top * (1 - fy) + bot * fy).astype(_F)
+
+
+def bokeh_blur_kernel(radius: int) -> np.ndarray:
+    """The weights Bokeh Blur uses at integer ``radius`` with the round Bokeh Image, as a
+    correlation kernel ``(2 s + 1)^2`` over offsets (rows top-down): tap ``t`` samples
+    the Bokeh Image bilinearly at ``1 - (t + 1/2) / (2 s + 1)`` (a disk of radius about
+    ``s + 1/2``). Blender 5.0 and 4.2 (measured with impulses) weigh alike."""
+    s = int(radius)
+    if s <= 0:
+        return np.ones((1, 1), _F)
+    n = 2 * s + 1
+    t = np.arange(n, dtype=_F)
+    c = _F(1) - (t + _F(0.5)) / _F(n)
+    # kernel texel (tx, ty) weighs offset (tx - s, ty - s) in Blender's axes (y up)
+    k_up = _sample_bilinear_extended(bokeh_disk_image(), c[None, :], c[:, None])
+    return np.ascontiguousarray(k_up[::-1])
+
+
+def legacy_pixel_size(radius, largest_side) -> int:
+    """The radius 4.x's Bokeh Blur uses for the Size the 4.x emission passes:
+    ``(floor(r) + 1/2) 100 / M`` percent, clamped to [0, 10], times ``M / 100``,
+    truncated (float32 as Blender)."""
+    M = _F(largest_side)
+    pct = (np.floor(_F(radius)) + _F(0.5)) * _F(100) / M
+    pct = min(max(pct, _F(0)), _F(10))
+    return int(_F(pct) * M / _F(100))
+
+
+def _bokeh_blur(image: np.ndarray, radius, legacy: bool, largest_side=None) -> np.ndarray:
+    """Constant-size Bokeh Blur: ``sum_k w_k I(p + k) / sum_k w_k`` over
+    :func:`bokeh_blur_kernel`, borders extended (both APIs; 4.x converts the radius to
+    and from a percentage of the larger side, :func:`legacy_pixel_size`)."""
+    from scipy import ndimage
+
+    if legacy:
+        s = legacy_pixel_size(radius, largest_side)
+    else:
+        s = int(np.floor(np.asarray(radius, _F)))  # the node truncates (radius >= 0)
+    if s <= 0:
+        return image.astype(_F)
+    kern = bokeh_blur_kernel(s).astype(np.float64)
+    img = image.astype(np.float64)
+    num = np.stack([ndimage.correlate(img[..., c], kern, mode="nearest")
+                    for c in range(img.shape[2])], axis=-1)
+    return (num / float(kern.sum())).astype(_F)
+
+
+def disk_kernel(radius, size: int) -> np.ndarray:
+    """The Convolve kernel built from nodes: ``clamp(r + 1/2 - |x - c|, 0, 1)`` on a
+    ``size x size`` image, ``c = size // 2`` (float32, as the nodes compute it)."""
+    r = np.asarray(radius, _F)
+    t = np.arange(size, dtype=_F) - _F(size // 2)
+    dist = np.sqrt((t[None, :] * t[None, :] + t[:, None] * t[:, None]).astype(_F)).astype(_F)
+    return np.clip((r + _F(0.5)) - dist, _F(0), _F(1)).astype(_F)
+
+
+def _convolve(image: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """Convolve (5.x): zero-padded convolution with the kernel divided by its sum."""
+    from scipy.signal import fftconvolve
+
+    k = kernel.astype(np.float64)
+    s = k.sum()
+    k = k / (s if s != 0 else 1.0)
+    out = np.stack([fftconvolve(image[..., c].astype(np.float64), k, mode="same")
+                    for c in range(image.shape[2])], axis=-1)
+    return out.astype(_F)
+
+
+def _dilate(value: np.ndarray, size: int) -> np.ndarray:
+    """Dilate/Erode in Step mode: the largest value over the ``(2 n + 1)^2`` square
+    (borders extended)."""
+    from scipy import ndimage
+
+    n = int(size)
+    return ndimage.maximum_filter(np.asarray(value, _F), size=2 * n + 1, mode="nearest")
+
+
+def _gauss_weights(max_distance: int) -> np.ndarray:
+    """Inpaint's smoothing weights: Blender's Gaussian filter at ``i / D``, i = 0..D,
+    normalised over the symmetric filter."""
+    gf = _F(1.6)
+    two = _F(2) * gf * gf
+    x = np.arange(max_distance + 1, dtype=_F) * _F(1.0 / max_distance if max_distance else 0)
+    x = x * (_F(3) * gf)
+    w = (_F(1) / np.sqrt(_F(np.pi) * two) * np.exp(-x * x / two)).astype(_F)
+    s = w[0] + 2 * w[1:].sum(dtype=_F)
+    return (w / s).astype(_F)
+
+
+def _jump_flood(seed: np.ndarray) -> np.ndarray:
+    """Jump flooding (1+JFA) as Blender runs it: for each pixel the (x, y) of a nearby
+    seed, (-1, -1) where none. ``seed`` is boolean, rows bottom-up."""
+    H, W = seed.shape
+    yy, xx = np.mgrid[:H, :W]
+    cur = np.where(seed[..., None], np.stack([xx, yy], -1), -1).astype(np.int64)
+    steps = [1]
+    s = 1 << max(0, (max(H, W) - 1).bit_length())  # power of 2 >= max side
+    s //= 2
+    while s:
+        steps.append(s)
+        s //= 2
+    for step in steps:
+        best = np.full((H, W), np.inf, np.float32)
+        out = np.zeros((H, W, 2), np.int64)
+        for j in (-1, 0, 1):
+            for i in (-1, 0, 1):
+                ny, nx = yy + j * step, xx + i * step
+                inside = (ny >= 0) & (ny < H) & (nx >= 0) & (nx < W)
+                val = cur[np.clip(ny, 0, H - 1), np.clip(nx, 0, W - 1)]
+                ok = inside & (val[..., 0] != -1)
+                dx = (val[..., 0] - xx).astype(np.float32)
+                dy = (val[..., 1] - yy).astype(np.float32)
+                d2 = dx * dx + dy * dy
+                better = ok & (d2 < best)
+                best = np.where(better, d2, best)
+                out = np.where(better[..., None], val, out)
+        cur = np.where(np.isfinite(best)[..., None], out, -1)
+    return cur
+
+
+def _inpaint(image: np.ndarray, distance: int) -> np.ndarray:
+    """Inpaint (5.x CPU): fill non-opaque pixels within ``distance`` px of the opaque
+    region from the nearest boundary pixel (jump flooding), smoothed by a separable
+    Gaussian of radius ``min(D, dist) / sqrt 2``; output alpha 1 there."""
+    D = int(distance)
+    if D <= 0:
+        return image.astype(_F)
+    img = image.astype(_F)[::-1]  # rows bottom-up, as Blender's texel y
+    H, W = img.shape[:2]
+    a = img[..., 3]
+    opaque = a == 1.0
+    pad = np.pad(a, 1, mode="edge")
+    trans_nb = np.zeros((H, W), bool)
+    for j in (-1, 0, 1):
+        for i in (-1, 0, 1):
+            if i or j:
+                trans_nb |= pad[1 + j:1 + j + H, 1 + i:1 + i + W] < 1.0
+    flood = _jump_flood(opaque & trans_nb)
+    yy, xx = np.mgrid[:H, :W]
+    dx = (xx - flood[..., 0]).astype(_F)
+    dy = (yy - flood[..., 1]).astype(_F)
+    dist = np.sqrt(dx * dx + dy * dy).astype(_F)
+    bcol = img[np.clip(flood[..., 1], 0, H - 1), np.clip(flood[..., 0], 0, W - 1)]
+    filled = bcol * (1 - a[..., None]) + img * a[..., None]
+    filled = np.where(opaque[..., None], img, filled).astype(_F)
+    # Blender divides the float by the double constant sqrt(2): the quotient is rounded
+    # once, from double (this decides int(radius) where it is near an integer)
+    radius = (np.minimum(_F(D), dist).astype(np.float64) / math.sqrt(2.0)).astype(_F)
+    radius = np.where(opaque | (dist > _F(D * 2.0)), _F(0), radius).astype(_F)
+    dist = np.where(opaque, _F(0), dist)
+    w = _gauss_weights(D)
+    smoothed = _variable_blur(_variable_blur(filled, radius, w, axis=1), radius, w, axis=0)
+    keep = opaque | (dist > _F(D))
+    mixed = smoothed[..., :3] * (1 - a[..., None]) + img[..., :3] * a[..., None]
+    out = np.concatenate([mixed, np.ones((H, W, 1), _F)], -1)
+    out = np.where(keep[..., None], img, out).astype(_F)
+    return out[::-1]
+
+
+def _variable_blur(img: np.ndarray, radius: np.ndarray, weights: np.ndarray, axis: int):
+    """One pass of Blender's symmetric separable variable-size blur along ``axis``: each
+    pixel gathers ``int(radius)`` taps each side with weights sampled bilinearly from
+    ``weights`` at ``(i + 1/2) / (r + 1)``, divided by their sum; edges extended."""
+    r = radius.astype(_F).astype(np.int64)
+    n = len(weights)
+    acc = img * weights[0]
+    wsum = np.full(r.shape, weights[0], _F)
+    L = img.shape[axis]
+    idx = np.arange(L)
+    for i in range(1, int(r.max(initial=0)) + 1):
+        active = r >= i
+        if not active.any():
+            continue
+        # weight for tap i at radius r (per pixel)
+        x = (_F(i) + _F(0.5)) / (r.astype(_F) + 1) * _F(n) - _F(0.5)
+        x0 = np.floor(x).astype(np.int64)
+        f = (x - x0).astype(_F)
+        wv = (weights[np.clip(x0, 0, n - 1)] * (1 - f) + weights[np.clip(x0 + 1, 0, n - 1)] * f)
+        wv = np.where(active, wv, _F(0)).astype(_F)
+        plus = np.take(img, np.minimum(idx + i, L - 1), axis=axis)
+        minus = np.take(img, np.maximum(idx - i, 0), axis=axis)
+        acc = acc + (plus + minus) * wv[..., None]
+        wsum = wsum + wv * 2
+    return (acc / wsum[..., None]).astype(_F)
+
+
+def evaluate(graph: Graph, image: np.ndarray, depth: np.ndarray, values: dict,
+             legacy: bool = False, keep: bool = False) -> dict:
+    """Run the numpy model of ``graph``.
+
+    Args:
+        image: ``(H, W, 4)`` premultiplied linear RGBA (rows top-down), the Image input.
+        depth: ``(H, W)`` Depth pass (scene units).
+        values: the scalar group inputs by name (defaults from :data:`INPUTS`).
+        legacy: model the 4.2-4.5 nodes (Bokeh Blur); the 4.x Inpaint is not modelled.
+        keep: also return every node's value under ``"nodes"``.
+
+    Returns:
+        ``{"Image": (H, W, 4), "Alpha": (H, W)}`` float32 (plus ``"nodes"``).
+    """
+    inputs = {name: default for name, _, default, _ in INPUTS}
+    inputs.update(values)
+    inputs["Image"] = np.asarray(image, _F)
+    inputs["Depth"] = np.asarray(depth, _F)
+    H, W = inputs["Depth"].shape
+    vals: dict = {}
+
+    def get(arg):
+        if isinstance(arg, Ref):
+            v = vals[arg.node]
+            return v[arg.out] if isinstance(v, tuple) else v
+        if isinstance(arg, GroupIn):
+            return np.asarray(inputs[arg.name], _F)
+        return np.asarray(arg, _F)
+
+    for op in graph.ops:
+        a = [get(x) for x in op.args]
+        k = op.kind
+        if k == "math":
+            v = _math(op.param("op"), a[0], a[1], op.param("clamp", False))
+        elif k == "separate":
+            v = tuple(a[0][..., c] for c in range(4))
+        elif k == "combine":
+            v = np.stack([np.broadcast_to(x, (H, W)) for x in a], -1).astype(_F)
+        elif k == "over":
+            bg, fg = (np.broadcast_to(x, (H, W, 4)) for x in a)
+            v = (fg + bg * (1 - np.clip(fg[..., 3:4], 0, 1))).astype(_F)
+        elif k == "bokeh_disk":
+            v = None
+        elif k == "bokeh_blur":
+            v = _bokeh_blur(a[0], a[2], legacy, max(float(inputs["Resolution X"]),
+                                                    float(inputs["Resolution Y"])))
+        elif k == "disk_kernel":
+            if legacy:
+                raise ValueError("the Convolve path exists in Blender 5.x only")
+            v = disk_kernel(a[0], op.param("size"))
+        elif k == "convolve":
+            v = _convolve(a[0], a[1])
+        elif k == "dilate":
+            v = _dilate(a[0], op.param("size"))
+        elif k == "inpaint":
+            if legacy:
+                raise NotImplementedError("the 4.x Inpaint node's algorithm is not modelled")
+            v = _inpaint(a[0], op.param("distance"))
+        else:
+            raise ValueError(f"unknown node kind {k!r}")
+        vals[op.name] = v
+    out = {name: np.asarray(get(ref), _F) for name, ref in graph.outputs}
+    if keep:
+        out["nodes"] = vals
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# Emission into Blender (5.x or 4.2-4.5 API)
+
+
+class _Emitter:
+    """Turns the ops of a :class:`Graph` into nodes of ``tree`` for one API."""
+
+    def __init__(self, tree, legacy: bool):
+        self.tree = tree
+        self.legacy = legacy
+        self.nodes = {}  # op name -> node
+        self.shared = {}
+        self.gin = tree.nodes.new("NodeGroupInput")
+        self.gin.location = (-400, 0)
+        self.column = {}
+
+    def new(self, kind, label, slot=None):
+        n = self.tree.nodes.new(node_id(kind, self.legacy))
+        n.name = n.label = label
+        row = slot if slot is not None else 0
+        col = self.column.get(row, 0)
+        self.column[row] = col + 1
+        n.location = (col * 180.0, -row * 900.0)
+        n.hide = kind == "math"
+        return n
+
+    def socket(self, arg):
+        """The output socket an argument comes from, or None for a constant."""
+        if isinstance(arg, Ref):
+            return self.nodes[arg.node].outputs[arg.out]
+        if isinstance(arg, GroupIn):
+            return self.gin.outputs[arg.name]
+        return None
+
+    def feed(self, dst, arg):
+        src = self.socket(arg)
+        if src is None:
+            dst.default_value = float(arg) if dst.type == "VALUE" else arg
+        else:
+            self.tree.links.new(src, dst)
+
+    def math(self, label, op, a, b=0.0, clamp=False, slot=None):
+        n = self.new("math", label, slot)
+        n.operation = op
+        n.use_clamp = bool(clamp)
+        for sock, arg in zip(n.inputs, (a, b)):
+            if isinstance(arg, (Ref, GroupIn)):
+                self.tree.links.new(self.socket(arg), sock)
+            elif hasattr(arg, "bl_idname"):  # a node socket already
+                self.tree.links.new(arg, sock)
+            else:
+                sock.default_value = float(arg)
+        return n
+
+    def emit(self, op: Op):
+        m = re.match(r"s(\d+)\.", op.name)
+        slot = int(m.group(1)) + 1 if m else 0  # one row of nodes per slice
+        k, L = op.kind, self.legacy
+        if k == "math":
+            n = self.math(op.name, op.param("op"), *op.args, clamp=op.param("clamp", False),
+                          slot=slot)
+        elif k == "separate":
+            n = self.new("separate", op.name, slot)
+            self.feed(n.inputs[0], op.args[0])
+        elif k == "combine":
+            n = self.new("combine", op.name, slot)
+            for sock, arg in zip(n.inputs, op.args):
+                self.feed(sock, arg)
+        elif k == "over":
+            n = self.new("over", op.name, slot)
+            if L:
+                n.use_premultiply = False
+                n.premul = 0.0
+                n.inputs[0].default_value = 1.0
+                self.feed(n.inputs[1], op.args[0])
+                self.feed(n.inputs[2], op.args[1])
+            else:
+                self.feed(n.inputs["Background"], op.args[0])
+                self.feed(n.inputs["Foreground"], op.args[1])
+        elif k == "bokeh_disk":
+            n = self.new("bokeh_image", op.name, slot)
+            set_option(n, "Roundness", 1.0, "rounding")
+            set_option(n, "Catadioptric Size", 0.0, "catadioptric")
+            set_option(n, "Color Shift", 0.0, "shift")
+            set_option(n, "Angle", 0.0)
+        elif k == "bokeh_blur":
+            n = self.new("bokeh_blur", op.name, slot)
+            self.feed(n.inputs["Image"], op.args[0])
+            self.feed(n.inputs["Bokeh"], op.args[1])
+            if L:
+                # 4.x: Size in percent of the larger side, converted back with truncation:
+                # pass (floor(r) + 1/2) so that the conversion lands inside the same pixel
+                n.use_variable_size = False
+                n.use_extended_bounds = False
+                f = self.math(op.name + ".floor", "FLOOR", op.args[2], slot=slot)
+                h = self.math(op.name + ".half", "ADD", f.outputs[0], 0.5, slot=slot)
+                side = self.shared.get("side")
+                if side is None:
+                    side = self.shared["side"] = self.math(
+                        "largest_side", "MAXIMUM", GroupIn("Resolution X"),
+                        GroupIn("Resolution Y"))
+                p = self.math(op.name + ".x100", "MULTIPLY", h.outputs[0], 100.0, slot=slot)
+                pct = self.math(op.name + ".percent", "DIVIDE", p.outputs[0], side.outputs[0],
+                                slot=slot)
+                self.tree.links.new(pct.outputs[0], n.inputs["Size"])
+            else:
+                self.feed(n.inputs["Size"], op.args[2])
+        elif k == "disk_kernel":
+            dist = self._kernel_distance(op.param("size"))
+            rp = self.math(op.name + ".r+0.5", "ADD", op.args[0], 0.5, slot=slot)
+            n = self.math(op.name, "SUBTRACT", rp.outputs[0], dist.outputs[0], clamp=True,
+                          slot=slot)
+        elif k == "convolve":
+            n = self.new("convolve", op.name, slot)
+            self.feed(n.inputs["Image"], op.args[0])
+            n.inputs["Kernel Data Type"].default_value = "Float"
+            self.tree.links.new(self.socket(op.args[1]), n.inputs["Float Kernel"])
+            n.inputs["Normalize Kernel"].default_value = True
+        elif k == "dilate":
+            n = self.new("dilate", op.name, slot)
+            self.feed(n.inputs[0], op.args[0])
+            if L:
+                n.mode = "STEP"
+            else:
+                n.inputs["Type"].default_value = "Steps"
+            set_option(n, "Size", int(op.param("size")), "distance")
+        elif k == "inpaint":
+            n = self.new("inpaint", op.name, slot)
+            self.feed(n.inputs["Image"], op.args[0])
+            set_option(n, "Size", int(op.param("distance")), "distance")
+        else:
+            raise ValueError(f"unknown node kind {k!r}")
+        self.nodes[op.name] = n
+
+    def _kernel_distance(self, size: int):
+        """|x - c| on a size x size image, shared by every slice's kernel (5.x): the Bokeh
+        Image cropped to ``size`` gives the domain, Image Coordinates the pixel indices."""
+        key = ("distance", size)
+        if key in self.shared:
+            return self.shared[key]
+        if not 1 <= size <= BOKEH_IMAGE_SIZE:
+            raise ValueError(f"the Convolve kernel must be 1..{BOKEH_IMAGE_SIZE} px, got {size}")
+        src = self.new("bokeh_image", "kernel_domain")
+        crop = self.new("crop", "kernel_crop")
+        self.tree.links.new(src.outputs[0], crop.inputs["Image"])
+        for name, v in (("X", 0), ("Y", 0), ("Width", size), ("Height", size)):
+            crop.inputs[name].default_value = v
+        crop.inputs["Alpha Crop"].default_value = False
+        coords = self.new("image_coordinates", "kernel_coordinates")
+        self.tree.links.new(crop.outputs[0], coords.inputs["Image"])
+        xyz = self.new("separate_xyz", "kernel_xy")
+        self.tree.links.new(coords.outputs["Pixel"], xyz.inputs[0])
+        c = float(size // 2)
+        dx = self.math("kernel_dx", "SUBTRACT", xyz.outputs[0], c)
+        dy = self.math("kernel_dy", "SUBTRACT", xyz.outputs[1], c)
+        dx2 = self.math("kernel_dx2", "MULTIPLY", dx.outputs[0], dx.outputs[0])
+        dy2 = self.math("kernel_dy2", "MULTIPLY", dy.outputs[0], dy.outputs[0])
+        s = self.math("kernel_r2", "ADD", dx2.outputs[0], dy2.outputs[0])
+        dist = self.math("kernel_distance", "SQRT", s.outputs[0])
+        self.shared[key] = dist
+        return dist
+
+
+def _ensure_interface(group) -> None:
+    """Give ``group`` exactly the sockets of :data:`INPUTS` and :data:`OUTPUTS`; kept as
+    they are when they already match (so links, values and drivers on group nodes stay)."""
+    want = [(n, "INPUT", t) for n, t, _, _ in INPUTS] + [(n, "OUTPUT", t) for n, t, _ in OUTPUTS]
+    have = [(s.name, s.in_out, s.socket_type) for s in _interface_sockets(group)]
+    if sorted(have) == sorted(want):
+        return
+    group.interface.clear()
+    for name, stype, default, desc in INPUTS:
+        s = group.interface.new_socket(name, in_out="INPUT", socket_type=stype, description=desc)
+        s.default_value = default
+        if stype == "NodeSocketFloat" and name not in ("Depth",):
+            s.min_value = 0.0
+    for name, stype, desc in OUTPUTS:
+        group.interface.new_socket(name, in_out="OUTPUT", socket_type=stype, description=desc)
+
+
+def build_group(graph: Graph, group=None, name: str = GROUP_NAME):
+    """Emit ``graph`` as a compositor node group for the running Blender's API.
+
+    ``group``: an existing group to regenerate in place (its nodes are replaced, its
+    interface kept if it matches, so group nodes using it keep their links, values and
+    drivers); default a new group named ``name``. Returns the group. Its structure is
+    stored in the group's custom property ``mpib_spec`` (for :func:`spec_of`)."""
+    import json
+
+    import bpy
+
+    legacy = is_legacy_api(bpy)
+    if graph.spec.blur == "convolve" and legacy:
+        raise ValueError("blur 'convolve' needs Blender 5.0 or later (no Convolve node before)")
+    if group is None:
+        group = bpy.data.node_groups.new(name, "CompositorNodeTree")
+    group.nodes.clear()
+    _ensure_interface(group)
+    em = _Emitter(group, legacy)
+    for op in graph.ops:
+        em.emit(op)
+    gout = group.nodes.new("NodeGroupOutput")
+    gout.location = (em.column.get(0, 0) * 180.0 + 200, 0)
+    for out_name, ref in graph.outputs:
+        group.links.new(em.nodes[ref.node].outputs[ref.out], gout.inputs[out_name])
+    s = graph.spec
+    group["mpib_spec"] = json.dumps({"disparities": list(s.disparities), "fill": s.fill,
+                                     "blur": s.blur, "fill_px": list(s.fill_px),
+                                     "kernel_radius_px": s.kernel_radius_px,
+                                     "edge": s.edge, "edge_jump": s.edge_jump})
+    return group
+
+
+def spec_of(group) -> GroupSpec | None:
+    """The :class:`GroupSpec` a group was built from (None if it is not one of ours)."""
+    import json
+
+    raw = group.get("mpib_spec") if group is not None else None
+    if not raw:
+        return None
+    d = json.loads(raw)
+    return GroupSpec(tuple(d["disparities"]), d["fill"], d["blur"], tuple(d["fill_px"]),
+                     int(d["kernel_radius_px"]), d.get("edge", "hard"), d.get("edge_jump", 0.0))
+
+
+def install(scene, group, node_name: str = GROUP_NAME):
+    """Wire the group between Render Layers (Image, Depth) and the compositor output of
+    ``scene`` (created as needed), enabling the Depth pass. Reuses a group node named
+    ``node_name`` if there is one. Returns the group node."""
+    import bpy
+
+    legacy = is_legacy_api(bpy)
+    tree = compositor_tree(scene, create=True)
+    for vl in scene.view_layers:
+        vl.use_pass_z = True
+    rl = next((n for n in tree.nodes if n.bl_idname == "CompositorNodeRLayers"), None)
+    if rl is None:
+        rl = tree.nodes.new("CompositorNodeRLayers")
+        rl.location = (-400, 0)
+    out = tree_output(tree)
+    node = tree.nodes.get(node_name)
+    if node is None or node.bl_idname != "CompositorNodeGroup":
+        node = tree.nodes.new(node_id("group", legacy))
+        node.name = node_name
+        node.location = (rl.location[0] + 300, rl.location[1])
+    node.node_tree = group
+    node.label = group.name
+    node.width = 220
+    tree.links.new(rl.outputs["Image"], node.inputs["Image"])
+    tree.links.new(rl.outputs["Depth"], node.inputs["Depth"])
+    tree.links.new(node.outputs["Image"], out.inputs[0])
+    out.location = (node.location[0] + 300, node.location[1])
+    return node
+
+
+# --------------------------------------------------------------------------------------
+# Running the group headless on given passes (tests and measurements)
+
+
+def _write_passes(folder, image: np.ndarray, depth: np.ndarray) -> tuple[str, str]:
+    """Two EXR files an Image node reads exactly: the RGBA image, and the depth in R, G, B."""
+    import os
+
+    from .exr import channels_from_rgba, write_exr
+
+    d = np.asarray(depth, np.float32)
+    paths = (os.path.join(folder, "image.exr"), os.path.join(folder, "depth.exr"))
+    write_exr(paths[0], channels_from_rgba(np.asarray(image, np.float32)))
+    write_exr(paths[1], channels_from_rgba(np.stack([d, d, d, np.ones_like(d)], -1)))
+    return paths
+
+
+def run_on_passes(image: np.ndarray, depth: np.ndarray, graph: Graph, values: dict,
+                  workdir=None) -> dict:
+    """Render the group on given passes in this process's Blender (factory settings; do
+    not mix with other ``bpy`` work): an Image node feeds ``image`` (premultiplied RGBA)
+    and ``depth``, the group's scalar inputs get ``values``. Returns ``{"Image": (H, W,
+    4), "seconds": compositing + render op}``. Works with the 5.x and the 4.x API."""
+    import os
+    import tempfile
+    import time
+
+    import bpy
+
+    from .exr import read_exr, rgba_from
+
+    image = np.asarray(image, np.float32)
+    H, W = image.shape[:2]
+    with tempfile.TemporaryDirectory(prefix="mpib-nodegroup-") as tmp:
+        d = str(workdir or tmp)
+        os.makedirs(d, exist_ok=True)
+        paths = _write_passes(d, image, depth)
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+        sc = bpy.context.scene
+        sc.render.engine = "CYCLES"
+        sc.cycles.samples = 1
+        r = sc.render
+        r.resolution_x, r.resolution_y, r.resolution_percentage = W, H, 100
+        r.use_compositing = True
+        sc.view_settings.view_transform = "Standard"
+        s = r.image_settings
+        if hasattr(s, "media_type"):
+            s.media_type = "IMAGE"
+        s.file_format, s.color_mode, s.color_depth = "OPEN_EXR", "RGBA", "32"
+        tree = compositor_tree(sc, create=True)
+        tree.nodes.clear()
+        out = tree_output(tree)
+        group = build_group(graph)
+        node = tree.nodes.new(node_id("group", is_legacy_api(bpy)))
+        node.node_tree = group
+        srcs = []
+        for path in paths:
+            src = tree.nodes.new("CompositorNodeImage")
+            src.image = bpy.data.images.load(path, check_existing=False)
+            srcs.append(src)
+        tree.links.new(srcs[0].outputs["Image"], node.inputs["Image"])
+        sep = tree.nodes.new("CompositorNodeSeparateColor")
+        tree.links.new(srcs[1].outputs["Image"], sep.inputs[0])
+        tree.links.new(sep.outputs[0], node.inputs["Depth"])
+        for name, v in values.items():
+            node.inputs[name].default_value = float(v)
+        tree.links.new(node.outputs["Image"], out.inputs[0])
+        r.filepath = os.path.join(d, "group_output.exr")
+        t0 = time.perf_counter()
+        bpy.ops.render.render(write_still=True)
+        seconds = time.perf_counter() - t0
+        res = rgba_from(read_exr(r.filepath))
+    return {"Image": res, "seconds": seconds}
+
+
+# --------------------------------------------------------------------------------------
+# Drivers from the scene camera, and the scene's depth range without a render
+
+
+def _driver(socket, expression: str, variables) -> None:
+    """Replace the driver of ``socket.default_value``: a simple expression (evaluated
+    without Python) over SINGLE_PROP variables ``(name, id_type, id, data_path)``."""
+    socket.driver_remove("default_value")
+    fc = socket.driver_add("default_value")
+    drv = fc.driver
+    drv.type = "SCRIPTED"
+    for name, id_type, ident, path in variables:
+        var = drv.variables.new()
+        var.name = name
+        var.type = "SINGLE_PROP"
+        var.targets[0].id_type = id_type
+        var.targets[0].id = ident
+        var.targets[0].data_path = path
+    drv.expression = expression
+
+
+#: Inputs the camera drivers set.
+DRIVEN_INPUTS = ("Focus Distance", "F-Stop", "Focal Length", "Sensor Width", "Resolution X",
+                 "Resolution Y", "Unit Scale")
+
+
+def add_camera_drivers(node, scene, cam_obj=None) -> list[str]:
+    """Drive the group node's lens inputs from ``cam_obj`` (default the scene camera) and
+    the scene's render settings, with simple expressions that Blender evaluates without
+    Python, follow keyframes and survive saving:
+
+    - Focus Distance: the focus object's planar depth ``|z . (cam - obj)| / |z|`` (z the
+      camera's view axis, as Blender computes it), else ``dof.focus_distance``;
+    - F-Stop, Focal Length: ``dof.aperture_fstop``, ``lens``;
+    - Sensor Width: the sensor size across the image width for the fit (HORIZONTAL:
+      the width; VERTICAL: ``height * W / H``; AUTO: ``width * W / max(W, H)``);
+    - Resolution X/Y: ``floor(resolution * percentage / 100)``; Unit Scale.
+
+    Returns the names of the driven inputs. Deleting a driver leaves its input free."""
+    cam_obj = cam_obj or scene.camera
+    if cam_obj is None or cam_obj.type != "CAMERA":
+        raise ValueError("the scene has no camera to drive the node from")
+    cam = cam_obj.data
+    focus_obj = cam.dof.focus_object
+    if focus_obj is not None:
+        vars_ = []
+        for i, ax in enumerate("xyz"):  # RNA paths index matrix_world column first
+            vars_ += [(f"z{ax}", "OBJECT", cam_obj, f"matrix_world[2][{i}]"),
+                      (f"c{ax}", "OBJECT", cam_obj, f"matrix_world[3][{i}]"),
+                      (f"o{ax}", "OBJECT", focus_obj, f"matrix_world[3][{i}]")]
+        _driver(node.inputs["Focus Distance"],
+                "abs(zx * (cx - ox) + zy * (cy - oy) + zz * (cz - oz)) / "
+                "sqrt(zx * zx + zy * zy + zz * zz)", vars_)
+    else:
+        _driver(node.inputs["Focus Distance"], "z", [("z", "CAMERA", cam, "dof.focus_distance")])
+    _driver(node.inputs["F-Stop"], "n", [("n", "CAMERA", cam, "dof.aperture_fstop")])
+    _driver(node.inputs["Focal Length"], "f", [("f", "CAMERA", cam, "lens")])
+    res = [("rx", "SCENE", scene, "render.resolution_x"),
+           ("ry", "SCENE", scene, "render.resolution_y")]
+    pct = [("pct", "SCENE", scene, "render.resolution_percentage")]
+    # sensor_fit is an enum: AUTO 0, HORIZONTAL 1, VERTICAL 2
+    _driver(node.inputs["Sensor Width"],
+            "sw if fit == 1 else (sh * rx / ry if fit == 2 else sw * rx / max(rx, ry))",
+            [("sw", "CAMERA", cam, "sensor_width"), ("sh", "CAMERA", cam, "sensor_height"),
+             ("fit", "CAMERA", cam, "sensor_fit")] + res)
+    _driver(node.inputs["Resolution X"], "floor(rx * pct / 100)", res[:1] + pct)
+    _driver(node.inputs["Resolution Y"], "floor(ry * pct / 100)", res[1:] + pct)
+    _driver(node.inputs["Unit Scale"], "u if u > 0 else 1",
+            [("u", "SCENE", scene, "unit_settings.scale_length")])
+    return list(DRIVEN_INPUTS)
+
+
+def scene_disparity_intervals(scene, cam_obj=None) -> list[tuple[float, float]]:
+    """Disparity intervals ``1/Z`` of the visible mesh objects' bounding boxes in front
+    of the camera (Z planar depth, clipped to the camera's clip range), plus the
+    background at 0 when the world is visible: a stand-in for the depth of a render
+    when there is none yet."""
+    from mathutils import Vector
+
+    cam_obj = cam_obj or scene.camera
+    inv = cam_obj.matrix_world.inverted()
+    cam = cam_obj.data
+    out = [(0.0, 0.0)]
+    for ob in scene.objects:
+        if ob.type not in ("MESH", "CURVE", "SURFACE", "META", "FONT") or not ob.visible_get():
+            continue
+        zs = [-(inv @ (ob.matrix_world @ Vector(c))).z for c in ob.bound_box]
+        z0, z1 = max(min(zs), cam.clip_start), min(max(zs), cam.clip_end)
+        if z1 > cam.clip_start and z0 <= z1:
+            out.append((1.0 / z1, 1.0 / z0))
+    return out
