@@ -73,45 +73,16 @@ import numpy as np
 GROUP_NAME = "MPIB Refocus"
 
 # --------------------------------------------------------------------------------------
-# Version-dependent helpers. TEMPORARY: the shared module mpib_validate.blender_compat
-# (another branch) provides these under the same names; swap at merge.
+# Version-dependent helpers: the compositor tree and its output come from the shared
+# module (mpib_validate.blender_compat: 5.3's compositor effects, 5.0's node group, 4.x's
+# scene.node_tree); the node idnames this graph needs are here.
+from .blender_compat import compositor_tree, tree_output  # noqa: E402,F401
 
 
 def is_legacy_api(bpy) -> bool:
     """True for Blender 4.2-4.5 (``scene.node_tree``, Composite node, node options as
     properties); False for 5.x (``scene.compositing_node_group``, options as sockets)."""
     return tuple(bpy.app.version) < (5, 0, 0)
-
-
-def compositor_tree(scene, create: bool = True):
-    """The scene's compositor node tree (created if missing and ``create``), or None."""
-    import bpy
-
-    if not is_legacy_api(bpy):
-        tree = scene.compositing_node_group
-        if tree is None and create:
-            tree = bpy.data.node_groups.new(f"{scene.name} Compositor", "CompositorNodeTree")
-            scene.compositing_node_group = tree
-        return tree
-    if create:
-        scene.use_nodes = True
-    return scene.node_tree
-
-
-def tree_output(tree):
-    """The node that takes the final image: 5.x a Group Output with an ``Image`` input
-    (the interface socket is added if missing), 4.x the Composite node (added if
-    missing). Its image input is ``node.inputs[0]``."""
-    import bpy
-
-    if not is_legacy_api(bpy):
-        if not any(s.in_out == "OUTPUT" and s.name == "Image" for s in _interface_sockets(tree)):
-            tree.interface.new_socket("Image", in_out="OUTPUT", socket_type="NodeSocketColor")
-        outs = [n for n in tree.nodes if n.bl_idname == "NodeGroupOutput"]
-        node = next((n for n in outs if n.is_active_output), outs[0] if outs else None)
-        return node if node is not None else tree.nodes.new("NodeGroupOutput")
-    node = next((n for n in tree.nodes if n.bl_idname == "CompositorNodeComposite"), None)
-    return node if node is not None else tree.nodes.new("CompositorNodeComposite")
 
 
 #: Node idnames per API: (5.x, 4.2-4.5).
