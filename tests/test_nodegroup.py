@@ -8,7 +8,7 @@ the same description must give the same image. The saved .blend is then rendered
 fresh Blender that has neither the extension nor this package.
 
 A second Blender (4.2 LTS) runs the same checks when its Python is found
-(``MPIB_BPY42_PYTHON`` or /work/wt/compat/.venv-bpy42); otherwise they skip with a notice.
+(``MPIB_BPY42_PYTHON`` or the repository's .venv-bpy42, which ``make test-blender-versions`` builds); otherwise they skip with a notice.
 """
 
 from __future__ import annotations
@@ -169,7 +169,9 @@ def test_bokeh_blur_kernel_is_a_disk_of_radius_s_plus_a_half():
 
 
 def _bpy42_python() -> str | None:
-    cand = os.environ.get("MPIB_BPY42_PYTHON") or "/work/wt/compat/.venv-bpy42/bin/python"
+    # the environment `make test-blender-versions` builds (scripts/blender-versions.txt)
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    cand = os.environ.get("MPIB_BPY42_PYTHON") or os.path.join(repo, ".venv-bpy42", "bin", "python")
     return cand if cand and os.path.exists(cand) else None
 
 
