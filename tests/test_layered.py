@@ -16,13 +16,11 @@ import math
 import numpy as np
 import pytest
 
-pytest.importorskip("bpy")
-
-from mpib_validate import blender_layers, metrics  # noqa: E402
-from mpib_validate.exr import read_exr, rgba_from  # noqa: E402
-from mpib_validate.layered import composite_over, group_disparity  # noqa: E402
-from mpib_validate.passes import depth_to_disparity  # noqa: E402
-from mpib_validate.refocus import Passes, load_layered_passes, refocus  # noqa: E402
+from mpib_validate import blender_layers, cli, metrics
+from mpib_validate.exr import read_exr, rgba_from, write_exr
+from mpib_validate.layered import composite_over, group_disparity, layers_from_layered_passes
+from mpib_validate.passes import PassesSettings, depth_to_disparity
+from mpib_validate.refocus import Passes, load_layered_passes, refocus
 
 W, H = 64, 48
 LENS_MM, SENSOR_MM, FSTOP, Z_WALL = 100.0, 36.0, 1.0, 3.0
@@ -51,7 +49,7 @@ def _material(bpy, name, colour=None, checker=False):
 
 def build(spp, seed, dof, objects=("wall", "sphere", "wire")):
     """Reset Blender and build the scene (objects in an artist's collection)."""
-    import bpy
+    bpy = pytest.importorskip("bpy")
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     sc = bpy.context.scene
@@ -131,7 +129,8 @@ def renders(tmp_path_factory):
     # the same scene, another seed (the single pass's own noise) and the truth
     other = render(build(SHARP_SPP, SEED + 1, dof=False), tmp / "other.exr")
     truth = render(build(TRUTH_SPP, 1, dof=True), tmp / "truth.exr")
-    return {"path": tmp / "layers.exr", "img": layered, "names": names, "report": report,
+    bare = render(build(SHARP_SPP, SEED, dof=False, objects=("wall",)), tmp / "bare.exr")
+    return {"bare": bare, "path": tmp / "layers.exr", "img": layered, "names": names, "report": report,
             "artist": artist, "removed": removed, "after": after, "film_after": film_after,
             "other": other, "truth": truth}
 
@@ -172,10 +171,22 @@ def test_groups_composited_over_give_back_the_single_pass(renders):
     print(f"over-composite vs single pass: rms {rms:.2e}, max {np.abs(colour - single).max():.3f}; "
           f"another seed: rms {noise:.2e}")
     assert rms < 0.5 * noise
-    # the sphere's shadow is in the wall's layer (Indirect Only keeps it): without it the
-    # shadowed wall would be brighter than the single pass there
-    shadow = np.abs(colour - single).max(axis=-1)
-    assert np.percentile(shadow, 99) < 3 * noise
+
+
+def test_shadows_of_other_groups_stay_in_a_layer(renders):
+    # the sphere's shadow on the wall: the wall's layer against the wall rendered alone
+    img = renders["img"]
+    wall = rgba_from(img, "mpib_group_0.Combined.")[..., :3]
+    bare = rgba_from(renders["bare"], "ViewLayer.Combined.")[..., :3]
+    single = rgba_from(img, "ViewLayer.Combined.")[..., :3]
+    shadow = (bare - wall).mean(axis=-1) > 0.05  # measured: 77 px, up to 0.54 darker
+    assert shadow.sum() >= 20
+    uncovered = shadow & (img.channels["mpib_group_1.Combined.A"] == 0) & (
+        img.channels["mpib_group_2.Combined.A"] == 0)
+    assert uncovered.sum() >= 20
+    # where no nearer group covers it, the wall's layer is the single pass: same seed,
+    # same samples (measured: equal to the bit); 1e-5 is float32 rounding
+    np.testing.assert_allclose(wall[uncovered], single[uncovered], rtol=1e-5, atol=1e-6)
 
 
 def _psnr_ob(truth, image, depth, mask=None):
@@ -197,7 +208,44 @@ def test_layered_path_closer_to_cycles_depth_of_field_at_occlusion_boundaries(re
     p_layered, _ = _psnr_ob(truth, layered.image[..., :3] * layered.image[..., 3:], sp.depth, mask)
     print(f"PSNR_ob single pass {p_single:.2f} dB, layered {p_layered:.2f} dB, "
           f"mask {100 * mask.mean():.0f} %")
-    assert p_layered > p_single + 1.0
+    # measured: single pass 27.7 dB, layered 46.3 dB (truth's own noise floor there,
+    # from a second seed: 53.3 dB); 10 dB is well inside that margin, and above what
+    # any change of fill or unmixing in the single pass has gained on such scenes
+    assert p_layered > p_single + 10.0
+    # no sharp fragments of the wire: on its pixels the sharp input differs from the
+    # truth by the wire's full contrast; the single pass keeps most of it (measured:
+    # 0.55 of 0.55), the layered path less than a tenth (measured 0.014, the truth's
+    # noise between two seeds there is 0.019)
+    wire = lp.groups[2][1] > 0.3
+    contrast = np.abs(sp.colour - truth)[wire].max()
+    assert np.abs(single.image[..., :3] - truth)[wire].max() > 0.5 * contrast
+    assert np.abs(layered.image[..., :3] - truth)[wire].max() < 0.1 * contrast
+
+
+def test_mpib_refocus_reads_the_group_layers(renders, tmp_path, capsys):
+    out = tmp_path / "refocused.exr"
+    rc = cli.main(["refocus", str(renders["path"]), "-o", str(out), "--blur-parameter", str(A),
+                   "--focus-disparity", str(D_F), "--no-preview"])
+    assert rc == 0 and "3 depth groups" in capsys.readouterr().out
+    want = refocus(load_layered_passes(renders["path"]), A, D_F, "default").image
+    got = rgba_from(read_exr(out), "")
+    np.testing.assert_allclose(got[..., :3], want[..., :3] * want[..., 3:], rtol=1e-6, atol=1e-7)
+    # --layered on a file with one view layer: one line, exit 2, nothing written
+    one = tmp_path / "one.exr"
+    write_exr(one, {"ViewLayer.Combined.R": np.ones((4, 4), np.float32),
+                    "ViewLayer.Combined.G": np.ones((4, 4), np.float32),
+                    "ViewLayer.Combined.B": np.ones((4, 4), np.float32),
+                    "ViewLayer.Combined.A": np.ones((4, 4), np.float32),
+                    "ViewLayer.Depth.Z": np.ones((4, 4), np.float32)})
+    bad = tmp_path / "bad.exr"
+    rc = cli.main(["refocus", str(one), "-o", str(bad), "--layered", "--blur-parameter", "2",
+                   "--focus-disparity", "0.5"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "one.exr" in err[0] and "--layered" in err[0]
+    assert not bad.exists()
+    rc = cli.main(["refocus", str(renders["path"]), "-o", str(bad), "--background",
+                   str(renders["path"]), "--blur-parameter", "2", "--focus-disparity", "0.5"])
+    assert rc == 2 and "drop --background" in capsys.readouterr().err and not bad.exists()
 
 
 def test_one_object_falls_back_to_the_single_pass():
@@ -206,3 +254,75 @@ def test_one_object_falls_back_to_the_single_pass():
     assert names == [] and "single pass" in report and "1 visible object" in report
     assert [vl.name for vl in sc.view_layers] == ["ViewLayer"]
     assert sc.render.film_transparent is False
+
+
+# --------------------------------------------------------------------------------------
+# Pure numpy: the grouping and the MPI of group layers
+
+
+def test_split_groups_at_the_largest_gaps_and_a_ground_plane_goes_farthest():
+    # disparity intervals (1/m): a ground plane from 10 m to 1 m, a wall, two props
+    ivs = [(0.1, 1.0), (0.1, 0.1), (0.48, 0.52), (0.9, 0.95), (0.5, 0.55)]
+    assert blender_layers.split_groups(ivs, max_groups=3) == [[0, 1], [2, 4], [3]]
+    # the largest gap (0.38 /m, wall to props) splits first
+    assert blender_layers.split_groups(ivs, max_groups=2) == [[0, 1], [2, 4, 3]]
+    # one object, or all overlapping in depth: one group
+    assert blender_layers.split_groups([(0.2, 0.3)]) == [[0]]
+    assert blender_layers.split_groups([(0.2, 0.3), (0.25, 0.4)]) == [[0, 1]]
+
+
+def _pinhole(mpi):
+    """The MPI composited with no blur: each additive group's layers summed, groups and
+    plain layers laid "over", far to near (the compositor at zero aperture)."""
+    acc = np.zeros((mpi.height, mpi.width, mpi.channels))
+    keys = []
+    for i, l in enumerate(mpi.layers):
+        keys.append(("g", l.group) if l.group is not None else ("l", i))
+    for key in dict.fromkeys(keys):
+        part = np.zeros_like(acc)
+        for l, k in zip(mpi.layers, keys):
+            if k == key:
+                y0, y1, x0, x1 = l.box
+                part[y0:y1, x0:x1] += l.rgba
+        acc = part + (1.0 - part[..., 3:4]) * acc
+    return acc
+
+
+@pytest.mark.parametrize("split", ["linear", "additive"])
+@pytest.mark.parametrize("far_opaque", [True, False])
+def test_layered_mpi_composites_back_to_the_group_layers(split, far_opaque):
+    rng = np.random.default_rng(0)
+    Hs, Ws = 24, 32
+    # far: a textured wall at d = 0.3 (a hole to the world where not opaque); middle: a
+    # disk at d = 0.8 with anti-aliased edges; near: a one-pixel wire at d = 1.5, half
+    # covering its pixels
+    a0 = np.ones((Hs, Ws))
+    if not far_opaque:
+        a0[:, :6] = 0.0
+        a0[:, 6] = 0.5
+    P0 = rng.uniform(0.1, 0.9, (Hs, Ws, 3)) * a0[..., None]
+    yy, xx = np.mgrid[:Hs, :Ws]
+    a1 = np.clip(6.5 - np.hypot(yy - 12, xx - 16), 0.0, 1.0)
+    P1 = np.array([0.8, 0.2, 0.2]) * a1[..., None]
+    a2 = np.zeros((Hs, Ws))
+    a2[:, 20] = 0.5
+    P2 = np.full((Hs, Ws, 3), 0.9) * a2[..., None]
+    groups = [(P, a, np.where(a > 0, d, 0.0)) for P, a, d in
+              ((P0, a0, 0.3), (P1, a1, 0.8), (P2, a2, 1.5))]
+    mpi, info = layers_from_layered_passes(groups, 6.0, PassesSettings(split=split))
+    assert info.extra["groups"] == 3 and mpi.channels == (4 if far_opaque else 5)
+    colour, alpha = composite_over(groups)
+    got = _pinhole(mpi)
+    # the film channel (1 on content, 0 on the world) composites to the coverage; the
+    # MPI itself is opaque (the world is its disparity-0 content)
+    film = got[..., 4] if not far_opaque else got[..., 3]
+    np.testing.assert_allclose(got[..., 3], 1.0, atol=1e-6)
+    np.testing.assert_allclose(film, alpha, atol=1e-5)
+    # float32 layers: rounding of a few "over" steps
+    np.testing.assert_allclose(got[..., :3], colour, atol=1e-5)
+
+
+def test_group_disparity_takes_the_nearest_finite_depth_where_the_centre_missed():
+    z = np.array([[2.0, 1e10, 1e10, 1e10]])
+    a = np.array([[1.0, 0.4, 0.0, 0.0]])
+    np.testing.assert_allclose(group_disparity(z, a), [[0.5, 0.5, 0.0, 0.0]])
