@@ -224,6 +224,9 @@ def refocus(passes: Passes, blur_parameter: float, focus_disparity: float,
     # content, and every kernel has weight at its centre).
     film = passes.alpha
     if passes.groups is not None:
+        if background is not None:
+            raise PassError(f"{passes.colour_source}: a layered input holds what lies behind "
+                            f"the foreground; no background render is needed")
         # layered input: its own film channel unless the farthest group is opaque
         groups = [(c, a, group_disparity(z, a, far_limit, f"{passes.depth_source} group {k}"))
                   for k, (c, a, z) in enumerate(passes.groups)]
