@@ -105,18 +105,29 @@ def object_disparity_interval(obj, camera, near: float = 1e-3) -> tuple[float, f
     return float(1.0 / z.max()), float(1.0 / z.min())
 
 
+def artist_layer(scene):
+    """The view layer the groups are taken from: the first that is not ours."""
+    for vl in scene.view_layers:
+        if not vl.name.startswith(GROUP_PREFIX):
+            return vl
+    raise ValueError(f"scene '{scene.name}' has no view layer of its own")
+
+
 def auto_groups(scene, max_groups: int = 3) -> tuple[list[list], str]:
-    """The scene's visible renderable objects in depth groups, far to near, and a
-    one-line report. One group (or none) means: render the single pass."""
+    """The renderable objects that the camera sees in the artist's view layer
+    (:func:`artist_layer`; not in an excluded collection, not hidden from renders or
+    camera rays) in depth groups, far to near, and a one-line report. One group (or
+    none) means: render the single pass."""
     cam = scene.camera
     if cam is None:
         return [], "the scene has no camera: single pass"
-    objs = [o for o in scene.objects if o.type in RENDERABLE and not o.hide_render
+    source = artist_layer(scene)
+    source.update()  # collection flags and object matrices are stale after Python edits
+    objs = [o for o in source.objects if o.type in RENDERABLE and not o.hide_render
             and o.visible_camera]
     if len(objs) < 2:
         return [objs] if objs else [], (f"{len(objs)} visible object(s): nothing to split "
                                         f"into depth groups, single pass")
-    scene.view_layers[0].update()  # object matrices are stale after edits from Python
     idx = split_groups([object_disparity_interval(o, cam) for o in objs], max_groups)
     groups = [[objs[i] for i in g] for g in idx]
     if len(groups) < 2:
@@ -151,16 +162,38 @@ def setup_layers(scene, groups) -> list[str]:
         scene.collection.children.link(coll)
         for o in objs:
             coll.objects.link(o)
+    source = artist_layer(scene)
+    for vl in scene.view_layers:  # the artist's layers render as before
+        if not vl.name.startswith(GROUP_PREFIX):
+            for name in names:
+                _layer_collection(vl.layer_collection, name).exclude = True
     for j, name in enumerate(names):
         vl = scene.view_layers.new(name)
         vl.use = True
         vl.use_pass_combined = True
         vl.use_pass_z = True
+        _copy_collection_flags(source.layer_collection, vl.layer_collection)
         for k, other in enumerate(names):
             lc = _layer_collection(vl.layer_collection, other)
             lc.exclude = False
             lc.indirect_only = k != j
     return names
+
+
+def _copy_collection_flags(src, dst):
+    """The artist's Exclude, Holdout and Indirect Only per collection (a new view layer
+    includes every collection)."""
+    for child in src.children:
+        if child.name.startswith(GROUP_PREFIX):
+            continue
+        target = _layer_collection(dst, child.name)
+        if target is None:
+            continue
+        target.exclude = child.exclude
+        if not child.exclude:
+            target.holdout = child.holdout
+            target.indirect_only = child.indirect_only
+            _copy_collection_flags(child, target)
 
 
 def remove_layers(scene) -> int:

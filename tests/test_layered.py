@@ -129,6 +129,9 @@ def renders(tmp_path_factory):
     names, report = blender_layers.prepare(sc)
     layered = render(sc, tmp / "layers.exr")
     artist = [vl.name for vl in sc.view_layers if not vl.name.startswith("mpib_group_")]
+    # the artist's layer does not see the group collections (its render is unchanged)
+    excluded = [c.exclude for c in sc.view_layers["ViewLayer"].layer_collection.children
+                if c.name.startswith("mpib_group_")]
     removed = blender_layers.remove_layers(sc)
     after = [vl.name for vl in sc.view_layers]
     film_after = sc.render.film_transparent
@@ -136,7 +139,7 @@ def renders(tmp_path_factory):
     other = render(build(SHARP_SPP, SEED + 1, dof=False), tmp / "other.exr")
     truth = render(build(TRUTH_SPP, 1, dof=True), tmp / "truth.exr")
     bare = render(build(SHARP_SPP, SEED, dof=False, objects=("wall",)), tmp / "bare.exr")
-    return {"bare": bare, "path": tmp / "layers.exr", "img": layered, "names": names, "report": report,
+    return {"bare": bare, "excluded": excluded, "path": tmp / "layers.exr", "img": layered, "names": names, "report": report,
             "artist": artist, "removed": removed, "after": after, "film_after": film_after,
             "other": other, "truth": truth}
 
@@ -153,6 +156,7 @@ def test_one_view_layer_per_group_and_removed_again(renders):
     assert renders["report"].startswith("3 depth groups, far to near: wall; sphere; wire")
     assert renders["artist"] == ["ViewLayer"] and renders["after"] == ["ViewLayer"]
     assert renders["removed"] == 3 and renders["film_after"] is False
+    assert renders["excluded"] == [True, True, True]
     img = renders["img"]
     for k, z_lo, z_hi in ((0, 3.0, 3.0), (1, 1.15, 1.25), (2, 0.99, 1.01)):
         a = img.channels[f"mpib_group_{k}.Combined.A"]
@@ -285,7 +289,14 @@ def test_mpib_refocus_reads_the_group_layers(renders, tmp_path, capsys):
 
 
 def test_one_object_falls_back_to_the_single_pass():
+    import bpy
+
     sc = build(4, 0, dof=False, objects=("wall",))
+    # an object in a collection the artist excluded from the view layer does not count
+    hidden = bpy.data.collections.new("Hidden")
+    sc.collection.children.link(hidden)
+    hidden.objects.link(bpy.data.objects.new("ghost", bpy.data.meshes["Plane"]))
+    sc.view_layers["ViewLayer"].layer_collection.children["Hidden"].exclude = True
     names, report = blender_layers.prepare(sc)
     assert names == [] and "single pass" in report and "1 visible object" in report
     assert [vl.name for vl in sc.view_layers] == ["ViewLayer"]
