@@ -4,6 +4,11 @@ This is what ``mpib refocus`` and the Blender add-on run. Inputs are EXR files: 
 Blender multilayer file (``ViewLayer.Combined.*`` and ``ViewLayer.Depth.Z``), one of
 this project's renders (``AllInFocus.*`` and ``Depth.Z``), or colour and depth as two
 files. The camera travels in the header (:mod:`mpib_validate.camera_header`).
+
+A layered render (one view layer per depth group, ``mpib_group_<k>.Combined.*`` and
+``mpib_group_<k>.Depth.Z``, see :mod:`mpib_validate.blender_layers`) is read by
+:func:`load_layered_passes` and refocused from its group layers
+(:mod:`mpib_validate.layered`): what nearer groups hide is rendered, not filled.
 """
 
 from __future__ import annotations
