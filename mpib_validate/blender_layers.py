@@ -30,7 +30,8 @@ plane, a long wall seen at an angle) goes to the farthest group and does not tak
 in the split; the others are merged where their intervals overlap and split at the
 largest gaps, at most ``max_groups - 1`` of them, each at least ``min_gap`` of the
 range. A scene where nothing can be split gives one group: the caller renders the
-single pass (:func:`auto_groups` says why).
+single pass (:func:`auto_groups` says why). Or the artist picks collections
+(:func:`groups_from_collections`).
 """
 
 from __future__ import annotations
@@ -135,6 +136,25 @@ def auto_groups(scene, max_groups: int = 3) -> tuple[list[list], str]:
                         f"pass")
     names = "; ".join(", ".join(o.name for o in g) for g in groups)
     return groups, f"{len(groups)} depth groups, far to near: {names}"
+
+
+def groups_from_collections(scene, collections) -> list[list]:
+    """Depth groups that the artist picks: the renderable objects the camera sees (as
+    in :func:`auto_groups`) of each collection, children included, ordered far to near
+    by the median disparity of their bounding boxes; an object in several of the
+    collections goes to the first that holds it; empty groups are dropped."""
+    source = artist_layer(scene)
+    source.update()
+    seen = {o.name for o in source.objects if o.type in RENDERABLE and not o.hide_render
+            and o.visible_camera}
+    groups, taken = [], set()
+    for coll in collections:
+        objs = [o for o in coll.all_objects if o.name in seen and o.name not in taken]
+        taken.update(o.name for o in objs)
+        if objs:
+            d = [np.mean(object_disparity_interval(o, scene.camera)) for o in objs]
+            groups.append((float(np.median(d)), objs))
+    return [objs for _, objs in sorted(groups, key=lambda g: g[0])]
 
 
 def _layer_collection(layer_collection, name):

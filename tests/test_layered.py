@@ -288,6 +288,24 @@ def test_mpib_refocus_reads_the_group_layers(renders, tmp_path, capsys):
     assert rc == 2 and "drop --background" in capsys.readouterr().err and not bad.exists()
 
 
+def test_groups_from_the_collections_an_artist_picks():
+    import bpy
+
+    sc = build(4, 0, dof=False)
+    front, back = bpy.data.collections.new("Front"), bpy.data.collections.new("Back")
+    sc.collection.children.link(front)
+    sc.collection.children.link(back)
+    for name, coll in (("wire", front), ("sphere", front), ("wall", back), ("wire", back)):
+        coll.objects.link(bpy.data.objects[name])
+    # far to near by median disparity; the wire, in both, goes to the first picked
+    groups = blender_layers.groups_from_collections(sc, [front, back])
+    assert [sorted(o.name for o in g) for g in groups] == [["wall"], ["sphere", "wire"]]
+    assert blender_layers.setup_layers(sc, groups) == ["mpib_group_0", "mpib_group_1"]
+    assert blender_layers.remove_layers(sc) == 2
+    assert [vl.name for vl in sc.view_layers] == ["ViewLayer"]
+    assert "Front" in bpy.data.collections and "mpib_group_0" not in bpy.data.collections
+
+
 def test_one_object_falls_back_to_the_single_pass():
     import bpy
 
