@@ -189,12 +189,22 @@ def _refocus_camera(args, passes):
 
 def cmd_refocus(args) -> int:
     from .atomic import refuse_overwrite
-    from .refocus import load_passes, read_background, refocus, write_result
+    from .refocus import load_layered_passes, load_passes, read_background, refocus, write_result
 
     inputs = [args.input] + [p for p in (args.depth, args.background) if p]
     refuse_overwrite(args.output, inputs)
     refuse_overwrite(Path(args.output).with_suffix(".png"), inputs)
-    passes = load_passes(args.input, args.depth)
+    if args.layered and (args.depth or args.background):
+        raise CliError("--layered takes colour and depth from the input's view layers: "
+                       "drop --depth and --background")
+    # layered input: with --layered, or view layers named mpib_group_<k> (automatic)
+    passes = None if args.depth else load_layered_passes(
+        args.input, True if args.layered else None, args.far_limit)
+    if passes is not None and args.background:
+        raise CliError(f"'{args.input}' is a layered render (mpib_group_ view layers): the "
+                       f"groups hold what lies behind the foreground; drop --background")
+    if passes is None:
+        passes = load_passes(args.input, args.depth)
     H, W = passes.depth.shape
     used = _refocus_camera(args, passes)
     A, d_f = used.camera.blur_parameter, used.camera.focus_disparity
@@ -203,7 +213,8 @@ def cmd_refocus(args) -> int:
     result.info["camera"] = used.header()  # which camera fields were used, and from where
     written = write_result(args.output, result, preview=not args.no_preview)
     i = result.info
-    print(f"refocused {W}x{H} ({args.preset}): {i['planes']} planes, largest blur radius "
+    layered = f", {i['groups']} depth groups" if i["groups"] > 1 else ""
+    print(f"refocused {W}x{H} ({args.preset}{layered}): {i['planes']} planes, largest blur radius "
           f"{i['largest_radius_px']:.1f} px, fill {100 * i['fill_fraction']:.1f} % of pixels, "
           f"edge pixels {100 * i['edge_fraction']:.1f} %, A = {A:.3f} px, d_f = {d_f:.5g}, "
           f"{i['seconds']:.2f} s")
@@ -359,6 +370,10 @@ def build_parser() -> argparse.ArgumentParser:
     lens.add_argument("--scene-unit-m", type=float,
                       help="metres per depth unit for the lens (default: the header's, else 1; "
                            "Blender renders need 1 whatever their Unit Scale)")
+    f.add_argument("--layered", action="store_true",
+                   help="the input's view layers are depth groups (each with Combined and "
+                        "Depth; ordered far to near by median depth); view layers named "
+                        "mpib_group_<k> are read so without this option")
     f.add_argument("--preset", choices=list(PRESETS), default="default")
     f.add_argument("--far-limit", type=float, default=1e9,
                    help="depth at or beyond this is infinitely far (Cycles writes 1e10)")

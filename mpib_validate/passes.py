@@ -221,10 +221,34 @@ def known_background_mask(colour, disparity, far_field, near_next, known_rgb, kn
     return use & seed_ok[iy, ix]
 
 
-def layers_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter: float,
+def mpi_from_sheets(sheets, blur_parameter: float, settings: PassesSettings, height: int,
+                    width: int) -> MPI:
+    """Place the planes for ``sheets`` (far to near; :class:`~mpib_validate.mpi.Sheet` or
+    :class:`~mpib_validate.mpi.Pixels`) as ``settings`` say and cut the sheets into them:
+    adaptive planes (:func:`~mpib_validate.mpi.adaptive_planes`) over the disparity
+    intervals that hold content (alpha > 0), or ``n_uniform`` planes up to the largest
+    disparity; then :func:`~mpib_validate.mpi.layers_from_sheets` with the setting's split."""
+    values = np.concatenate([np.asarray(sh.disparity, np.float64)[np.asarray(sh.alpha) > 0]
+                             for sh in sheets])
+    if settings.planes == "uniform":
+        top = float(values.max()) if values.size else 0.0
+        planes = uniform_planes(settings.n_uniform, max(top, 1e-9) * (1 + 1e-9))
+    elif settings.planes == "adaptive":
+        step = plane_spacing(blur_parameter, settings.tolerance_px)
+        planes = adaptive_planes(_content_intervals(values, step), blur_parameter,
+                                 settings.tolerance_px)
+    else:
+        raise ValueError(f"planes must be 'adaptive' or 'uniform', got {settings.planes!r}")
+    return layers_from_sheets(sheets, planes, height, width, 0, split=settings.split,
+                              snap=SNAP_PX / blur_parameter)
+
+
+def sheets_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter: float,
                        settings: PassesSettings = PassesSettings(),
-                       background=None, progress=None) -> tuple[MPI, PassesInfo]:
-    """Build the MPI of a colour + disparity image (see the module docstring).
+                       background=None, progress=None) -> tuple[list, PassesInfo]:
+    """The sheets (far to near) of a colour + disparity image, before they are cut into
+    planes (see the module docstring): hidden-background fill, unmixed edge parts and
+    the visible pixels. Returns them and the info (``planes`` not yet set).
 
     Args:
         colour: ``(H, W, 3)`` linear radiance (all in focus), or ``(H, W, 3 + E)`` with
@@ -343,21 +367,23 @@ def layers_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
             info.edge_fraction = float(bi.size / D.size)
     sheets = sheets_far + [Sheet((0, 0), rgb, visible.astype(np.float64), D)] + sheets_near
     step_done(0.6)
-
-    step = plane_spacing(blur_parameter, settings.tolerance_px)
-    if settings.planes == "uniform":
-        planes = uniform_planes(settings.n_uniform, max(float(D.max()), 1e-9) * (1 + 1e-9))
-    elif settings.planes == "adaptive":
-        values = [D[visible]] + [sh.disparity[sh.alpha > 0] for sh in sheets
-                                 if isinstance(sh, Pixels)]
-        planes = adaptive_planes(_content_intervals(np.concatenate(values), step),
-                                 blur_parameter, settings.tolerance_px)
-    else:
-        raise ValueError(f"planes must be 'adaptive' or 'uniform', got {settings.planes!r}")
-    mpi = layers_from_sheets(sheets, planes, H, W, 0, split=settings.split,
-                             snap=SNAP_PX / blur_parameter)
-    step_done(1.0)
-    info.planes = len(mpi.layers)
     info.fill_fraction = float(region.mean())
+    info.seconds = time.perf_counter() - t0
+    return sheets, info
+
+
+def layers_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter: float,
+                       settings: PassesSettings = PassesSettings(),
+                       background=None, progress=None) -> tuple[MPI, PassesInfo]:
+    """Build the MPI of a colour + disparity image (see the module docstring): the
+    sheets of :func:`sheets_from_passes` cut into planes by :func:`mpi_from_sheets`.
+    Arguments as for :func:`sheets_from_passes`."""
+    t0 = time.perf_counter()
+    sheets, info = sheets_from_passes(colour, disparity, blur_parameter, settings,
+                                      background, progress)
+    mpi = mpi_from_sheets(sheets, blur_parameter, settings, *np.shape(disparity))
+    if progress is not None:
+        progress(1.0)
+    info.planes = len(mpi.layers)
     info.seconds = time.perf_counter() - t0
     return mpi, info

@@ -4,12 +4,18 @@ This is what ``mpib refocus`` and the Blender add-on run. Inputs are EXR files: 
 Blender multilayer file (``ViewLayer.Combined.*`` and ``ViewLayer.Depth.Z``), one of
 this project's renders (``AllInFocus.*`` and ``Depth.Z``), or colour and depth as two
 files. The camera travels in the header (:mod:`mpib_validate.camera_header`).
+
+A layered render (one view layer per depth group, ``mpib_group_<k>.Combined.*`` and
+``mpib_group_<k>.Depth.Z``, see :mod:`mpib_validate.blender_layers`) is read by
+:func:`load_layered_passes` and refocused from its group layers
+(:mod:`mpib_validate.layered`): what nearer groups hide is rendered, not filled.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +25,7 @@ import numpy as np
 from .camera_header import HeaderCamera, read_camera
 from .composite import render_subapertures
 from .exr import ExrError, find_pass, read_exr, rgba_from
+from .layered import composite_over, group_disparity, layers_from_layered_passes
 from .passes import DEFAULT_FAR_LIMIT, PassError, depth_to_disparity, layers_from_passes
 from .presets import get_preset
 
@@ -34,6 +41,11 @@ class Passes:
     camera: HeaderCamera | None = None  # the camera the input's header carries, if any
     #: ``(H, W)`` film alpha (coverage) of the colour, premultiplied into it; None = opaque
     alpha: np.ndarray | None = None
+    #: layered input (:func:`load_layered_passes`): far to near, ``(colour (H, W, 3)
+    #: premultiplied, alpha (H, W), depth (H, W))`` per depth group; ``colour``,
+    #: ``alpha`` and ``depth`` above are then the groups composited with "over" (and the
+    #: nearest covering group's depth), for focusing and display
+    groups: list | None = None
 
 
 def _colour_prefix(img, all_in_focus: bool = True) -> str:
@@ -97,6 +109,57 @@ def load_passes(path, depth_path=None) -> Passes:
                         f"depth in '{dsrc}' is {depth.shape[1]}x{depth.shape[0]}")
     return Passes(colour.astype(np.float32), depth, f"{path}:{prefix or 'RGB'}", dsrc, camera,
                   rgba[..., 3].astype(np.float32))
+
+
+#: View layers named like this (``mpib_group_0`` farthest, see
+#: :mod:`mpib_validate.blender_layers`) are read as a layered input automatically.
+GROUP_LAYER = re.compile(r"^mpib_group_(\d+)$")
+
+
+def _median_depth(z, alpha, far_limit):
+    sel = (alpha > 0.5) & np.isfinite(z) & (z > 0) & (z < far_limit)
+    return float(np.median(z[sel])) if sel.any() else math.inf
+
+
+def load_layered_passes(path, layered: bool | None = None,
+                        far_limit: float = DEFAULT_FAR_LIMIT) -> Passes | None:
+    """Read a multilayer EXR with one view layer per depth group
+    (``<layer>.Combined.R/G/B/A`` and ``<layer>.Depth.Z``), or None if it is not one.
+
+    ``layered=None`` (automatic): the view layers named ``mpib_group_<k>``, if there
+    are two or more; ``True``: every view layer with Combined and Depth (an error
+    naming the file if fewer than two); ``False``: None. The groups are ordered far to
+    near by their median depth (over pixels with alpha > 1/2 and a finite Z)."""
+    if layered is False:
+        return None
+    img = read_exr(path)
+    layers = sorted({n[:-len(".Combined.R")] for n in img.channels if n.endswith(".Combined.R")})
+    if layered is None:
+        layers = [n for n in layers if GROUP_LAYER.match(n)]
+        if len(layers) < 2:
+            return None
+    else:
+        layers = [n for n in layers if f"{n}.Depth.Z" in img.channels]
+        if len(layers) < 2:
+            raise PassError(f"--layered: '{path}' has {len(layers)} view layer(s) with "
+                            f"Combined and Depth passes, need two or more")
+    groups = []
+    for name in layers:
+        if f"{name}.Depth.Z" not in img.channels:
+            raise PassError(f"no Depth pass for view layer '{name}' in '{path}' (enable the "
+                            f"Z pass of every mpib_group_ view layer)")
+        rgba = rgba_from(img, f"{name}.Combined.").astype(np.float64)
+        z = img.channels[f"{name}.Depth.Z"].astype(np.float64)
+        groups.append((name, rgba[..., :3], np.clip(rgba[..., 3], 0.0, 1.0), z))
+    groups.sort(key=lambda g: -_median_depth(g[3], g[2], far_limit))  # far to near
+    colour, alpha = composite_over([g[1:] for g in groups])
+    depth = groups[0][3].copy()
+    for _, _, a, z in groups[1:]:
+        depth = np.where(a >= 0.5, z, depth)
+    order = ", ".join(g[0] for g in groups)
+    return Passes(colour.astype(np.float32), depth, f"{path}:{order} (layered)",
+                  f"{path}:{order} (layered)", read_camera(img.header, path),
+                  alpha.astype(np.float32), [g[1:] for g in groups])
 
 
 class Cancelled(Exception):
@@ -165,11 +228,22 @@ def refocus(passes: Passes, blur_parameter: float, focus_disparity: float,
     # the normaliser is positive, which is everywhere for passes (each pixel holds
     # content, and every kernel has weight at its centre).
     film = passes.alpha
-    opaque = film is None or bool(np.all(film >= 1.0))
-    colour = passes.colour if opaque else np.concatenate(
-        [passes.colour, np.clip(film, 0.0, 1.0)[..., None]], axis=-1)
-    mpi, info = layers_from_passes(colour, D, blur_parameter, p.passes,
-                                   background=background, progress=first)
+    if passes.groups is not None:
+        if background is not None:
+            raise PassError(f"{passes.colour_source}: a layered input holds what lies behind "
+                            f"the foreground; no background render is needed")
+        # layered input: its own film channel unless the farthest group is opaque
+        groups = [(c, a, group_disparity(z, a, far_limit, f"{passes.depth_source} group {k}"))
+                  for k, (c, a, z) in enumerate(passes.groups)]
+        mpi, info = layers_from_layered_passes(groups, blur_parameter, p.passes, progress=first)
+        opaque = mpi.channels == 4
+        D = np.concatenate([g[2][g[1] > 0] for g in groups] + [D.ravel()])
+    else:
+        opaque = film is None or bool(np.all(film >= 1.0))
+        colour = passes.colour if opaque else np.concatenate(
+            [passes.colour, np.clip(film, 0.0, 1.0)[..., None]], axis=-1)
+        mpi, info = layers_from_passes(colour, D, blur_parameter, p.passes,
+                                       background=background, progress=first)
     img = render_subapertures(mpi, blur_parameter, focus_disparity, p.subapertures,
                               p.composite, progress=second)
     covered = img[..., 3] > 0
@@ -187,7 +261,8 @@ def refocus(passes: Passes, blur_parameter: float, focus_disparity: float,
         "fill_fraction": info.fill_fraction, "edge_fraction": info.edge_fraction,
         "blur_parameter": blur_parameter, "focus_disparity": focus_disparity,
         "seconds": seconds, "layers_seconds": info.seconds,
-        "colour": passes.colour_source, "depth": passes.depth_source})
+        "colour": passes.colour_source, "depth": passes.depth_source,
+        "groups": 1 if passes.groups is None else len(passes.groups)})
 
 
 def focus_from_pixel(passes: Passes, x: int, y: int, far_limit: float = DEFAULT_FAR_LIMIT) -> float:
