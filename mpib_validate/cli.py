@@ -340,15 +340,17 @@ def cmd_refocus(args) -> int:
     est = budget.refocus_estimate(D, A, d_f, args.preset, background=background is not None)
     budget.check(est, _limit(args))
     print(f"refocusing {W}x{H} ({args.preset}): {est.describe()}", flush=True)
-    bar = _progress_bar(not args.quiet, "refocus", 100.0, "%")
+    bar = _progress_bar(not args.quiet, "refocus", 100, "%")
 
     def progress(fraction):
         if bar is not None:
-            bar.update(max(0.0, 100.0 * fraction - bar.n))
+            bar.update(max(0, int(round(100 * fraction)) - bar.n))
 
     try:
         result = refocus(passes, A, d_f, args.preset, args.far_limit, background=background,
                          progress=progress)
+        if bar is not None:
+            bar.refresh()
     finally:
         if bar is not None:
             bar.close()
