@@ -43,3 +43,38 @@ def refuse_overwrite(output: str | os.PathLike, inputs) -> None:
         if Path(p).resolve() == out:
             raise OutputError(f"refusing to overwrite the input '{p}' with an output; "
                               f"choose another output path")
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    if a.resolve() == b.resolve():
+        return True
+    try:
+        return a.exists() and b.exists() and os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def check_outputs(outputs, inputs=(), option: str = "-o") -> None:
+    """Raise :class:`OutputError` before any work unless every path of ``outputs`` can
+    be written: none is an input (or the same file by another name), none is a
+    directory, no two are the same file, and each one's directory exists or can be
+    made and is writable."""
+    outs = [Path(p) for p in outputs]
+    for i, out in enumerate(outs):
+        for other in outs[:i]:
+            if _same_file(out, other):
+                raise OutputError(f"{option} '{out}': the EXR and its PNG preview would be the "
+                                  f"same file; give the output a .exr name")
+        for p in inputs:
+            if _same_file(out, Path(p)):
+                raise OutputError(f"refusing to overwrite the input '{p}' with an output; "
+                                  f"choose another output path")
+        if out.is_dir():
+            raise OutputError(f"output '{out}' is a directory; give a file path")
+        parent = out.parent
+        while not parent.exists() and parent != parent.parent:
+            parent = parent.parent
+        if not parent.is_dir():
+            raise OutputError(f"cannot write '{out}': '{parent}' is not a directory")
+        if not os.access(parent, os.W_OK | os.X_OK):
+            raise OutputError(f"cannot write '{out}': no permission to write in '{parent}'")

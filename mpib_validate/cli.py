@@ -1,4 +1,6 @@
-"""The ``mpib`` command line: a thin layer over the package's functions.
+"""mpib: layered bokeh (MPI) refocusing, checked against physically based renders.
+
+The command line is a thin layer over the package's functions.
 
 Subcommands:
   generate   make a seeded random card scene (JSON + EXR textures)
@@ -15,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -23,6 +26,60 @@ from . import __version__
 
 class CliError(Exception):
     """A user error: printed as one line, exit status 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with its errors on one line (no usage block), exit status 2."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _number(kind, low=None, strict=False, what=None):
+    """An argparse type: an int or a finite float, at least ``low`` (above it if
+    ``strict``)."""
+    name = "an integer" if kind is int else "a finite number"
+    bound = "" if low is None else f" {'>' if strict else '>='} {low:g}"
+
+    def parse(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be {name}{bound}, got {text!r}") from None
+        if kind is float and not math.isfinite(v):
+            raise argparse.ArgumentTypeError(f"must be {name}{bound}, got {text!r}")
+        if low is not None and (v <= low if strict else v < low):
+            raise argparse.ArgumentTypeError(f"must be {name}{bound}, got {text!r}"
+                                             + (f" ({what})" if what else ""))
+        return v
+
+    parse.__name__ = "int" if kind is int else "float"
+    return parse
+
+
+_POSITIVE_INT = _number(int, 1)
+_COUNT = _number(int, 0)
+_FINITE = _number(float)
+_POSITIVE = _number(float, 0, strict=True)
+_NON_NEGATIVE = _number(float, 0)
+
+
+def _limit(args) -> int:
+    from .budget import memory_limit
+
+    return memory_limit(getattr(args, "max_memory_gb", None))
+
+
+def _add_memory_option(parser) -> None:
+    parser.add_argument("--max-memory-gb", type=_POSITIVE, default=None, metavar="GB",
+                        help="refuse work estimated to need more memory than this (default: "
+                             "half of this machine's memory)")
+
+
+def _outputs(path, preview: bool) -> list[Path]:
+    """The EXR and, with ``preview``, its PNG beside it."""
+    out = Path(path)
+    return [out, out.with_suffix(".png")] if preview else [out]
 
 
 def _parse_size(text: str) -> tuple[int, int]:
@@ -47,10 +104,24 @@ def _sample_set(args):
 
 
 def cmd_generate(args) -> int:
+    from . import budget
+    from .atomic import check_outputs
     from .generate import GeneratorSettings, generate
     from .scene import save_scene
 
     w, h = args.size
+    if args.case == "grazing" and args.family == "constant":
+        raise CliError("--case grazing tilts a card to near-grazing incidence; use it with "
+                       "--family varying (--family constant keeps every card fronto-parallel)")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise CliError(f"--out '{out}' is a file; give a folder for the scene")
+    if (out / "scene.json").exists() and not args.force:
+        raise CliError(f"--out '{out}' already holds a scene (scene.json); give --force to "
+                       f"replace it, or another folder")
+    check_outputs([out / "scene.json"], option="--out")
+    budget.check_pixels(w, h, "--size")
+    budget.check(budget.generate_estimate(w, h), _limit(args))
     scene = generate(args.seed, args.family, args.case, GeneratorSettings(width=w, height=h))
     path = save_scene(scene, args.out)
     cam = scene.camera
@@ -69,18 +140,27 @@ def _apply_camera_overrides(scene, args):
     return scene.with_camera(**changes).validate("command line") if changes else scene
 
 
+def _render_estimate(scene, args):
+    from . import budget
+
+    cam = scene.camera
+    texels = sum(int(c.rgba.shape[0]) * int(c.rgba.shape[1]) for c in scene.cards)
+    budget.check_pixels(cam.width, cam.height, f"the scene's camera ({args.scene})")
+    _, sample_bytes = budget.samples_estimate(args.aperture, args.spp, args.grid_side)
+    return budget.trace_estimate(cam.width, cam.height, len(scene.cards), texels, sample_bytes,
+                                 args.engine, args.spp)
+
+
 def cmd_render(args) -> int:
-    from .atomic import refuse_overwrite
+    from . import budget
+    from .atomic import check_outputs
     from .render_io import write_render
     from .scene import load_scene
     from .trace import render
 
     scene = _apply_camera_overrides(load_scene(args.scene), args)
-    src = Path(args.scene)
-    json_path = src / "scene.json" if src.is_dir() else src
-    refuse_overwrite(args.output, [json_path] + [json_path.parent / "cards" / f"{c.name}.exr"
-                                                 for c in scene.cards])
-    refuse_overwrite(Path(args.output).with_suffix(".png"), [json_path])
+    check_outputs(_outputs(args.output, not args.no_preview), scene.sources)
+    budget.check(_render_estimate(scene, args), _limit(args))
     if args.engine == "cycles":
         from .cycles import render_result
 
@@ -151,13 +231,36 @@ def cmd_compare(args) -> int:
         raise CliError(f"image sizes differ: '{args.reference}' is {a.shape[1]}x{a.shape[0]}, "
                        f"'{args.test}' is {b.shape[1]}x{b.shape[0]}")
     mask = _read_mask(args.mask, a.shape[:2]) if args.mask else None
+    if mask is not None and not mask.any():
+        raise CliError(f"mask '{args.mask}' selects no pixel (no value above one half)")
     res = all_metrics(a[..., :3], b[..., :3], mask, peak=args.peak, with_flip=not args.no_flip)
+    notes = _metric_notes(res, a.shape)
     if args.json:
-        print(json.dumps(res, indent=2))
+        clean = {k: (v if math.isfinite(v) else None) for k, v in res.items()}
+        print(json.dumps({**clean, "notes": notes} if notes else clean, indent=2))
     else:
         for k, v in res.items():
-            print(f"{k:14s} {v:.6g}")
+            text = f"{v:.6g}" if math.isfinite(v) else ("inf" if v > 0 else "n/a")
+            print(f"{k:14s} {text}" + (f"  ({notes[k]})" if k in notes else ""))
     return 0
+
+
+def _metric_notes(res: dict, shape) -> dict:
+    """Why a figure is not a finite number (identical images, images too small)."""
+    from .metrics import SSIM_WINDOW
+
+    notes = {}
+    for k, v in res.items():
+        if math.isfinite(v):
+            continue
+        if k.startswith("psnr") and v > 0:
+            notes[k] = "identical images"
+        elif k.startswith("ssim"):
+            notes[k] = (f"undefined on images smaller than {SSIM_WINDOW}x{SSIM_WINDOW}; "
+                        f"these are {shape[1]}x{shape[0]}")
+        else:
+            notes[k] = "undefined"
+    return notes
 
 
 def _parse_pixel(text: str) -> tuple[int, int]:
@@ -187,29 +290,61 @@ def _refocus_camera(args, passes):
     return resolve(passes.camera, given, W, H, args.input, labels)
 
 
+def _progress_bar(enabled: bool, desc: str, total: float, unit: str):
+    """A tqdm bar on a terminal (none when not a terminal, or not ``enabled``)."""
+    if not enabled:
+        return None
+    try:
+        from tqdm import tqdm
+    except ImportError:
+        return None
+    return tqdm(total=total, desc=desc, unit=unit, leave=False, disable=None)
+
+
 def cmd_refocus(args) -> int:
-    from .atomic import refuse_overwrite
+    from . import budget
+    from .atomic import check_outputs
+    from .passes import depth_to_disparity
     from .refocus import load_layered_passes, load_passes, read_background, refocus, write_result
 
     inputs = [args.input] + [p for p in (args.depth, args.background) if p]
-    refuse_overwrite(args.output, inputs)
-    refuse_overwrite(Path(args.output).with_suffix(".png"), inputs)
-    if args.layered and (args.depth or args.background):
+    check_outputs(_outputs(args.output, not args.no_preview), inputs)
+    if args.layered and (args.depth or args.background or args.view_layer):
         raise CliError("--layered takes colour and depth from the input's view layers: "
-                       "drop --depth and --background")
+                       "drop --depth, --background and --view-layer")
     # layered input: with --layered, or view layers named mpib_group_<k> (automatic)
-    passes = None if args.depth else load_layered_passes(
-        args.input, True if args.layered else None, args.far_limit)
+    layered = not (args.depth or args.view_layer)
+    passes = load_layered_passes(args.input, True if args.layered else None,
+                                 args.far_limit) if layered else None
     if passes is not None and args.background:
         raise CliError(f"'{args.input}' is a layered render (mpib_group_ view layers): the "
                        f"groups hold what lies behind the foreground; drop --background")
     if passes is None:
-        passes = load_passes(args.input, args.depth)
+        passes = load_passes(args.input, args.depth, view_layer=args.view_layer)
+    for notice in passes.notices:
+        print(f"mpib refocus: notice: {notice}", file=sys.stderr)
     H, W = passes.depth.shape
     used = _refocus_camera(args, passes)
     A, d_f = used.camera.blur_parameter, used.camera.focus_disparity
     background = read_background(args.background, (H, W)) if args.background else None
-    result = refocus(passes, A, d_f, args.preset, args.far_limit, background=background)
+    D = depth_to_disparity(passes.depth, args.far_limit, source=passes.depth_source)
+    est = budget.refocus_estimate(D, A, d_f, args.preset, background=background is not None)
+    budget.check(est, _limit(args))
+    print(f"refocusing {W}x{H} ({args.preset}): {est.describe()}", flush=True)
+    bar = _progress_bar(not args.quiet, "refocus", 100, "%")
+
+    def progress(fraction):
+        if bar is not None:
+            bar.update(max(0, int(round(100 * fraction)) - bar.n))
+
+    try:
+        result = refocus(passes, A, d_f, args.preset, args.far_limit, background=background,
+                         progress=progress)
+        if bar is not None:
+            bar.refresh()
+    finally:
+        if bar is not None:
+            bar.close()
     result.info["camera"] = used.header()  # which camera fields were used, and from where
     written = write_result(args.output, result, preview=not args.no_preview)
     i = result.info
@@ -226,12 +361,30 @@ def cmd_refocus(args) -> int:
 def cmd_dataset(args) -> int:
     import time
 
+    from . import budget
     from .dataset import build_dataset
     from .executor import make_executor
 
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise CliError(f"--out '{out}' is a file; give a folder for the dataset")
+    w, h = args.size
+    budget.check_pixels(w, h, "--size")
+    one = budget.generate_estimate(w, h).bytes + budget.trace_estimate(
+        w, h, 4, 4 * w * h, budget.samples_estimate("sobol", args.spp, 0)[1]).bytes
+    per = budget.Estimate(f"building {w}x{h} samples on {max(args.workers, 1)} worker(s)",
+                          {"one sample per worker": one * max(args.workers, 1)})
+    budget.check(per, _limit(args))
     ex = make_executor(args.workers, args.scheduler)
+    bar = _progress_bar(True, "dataset", args.count, "sample")
     t0 = time.perf_counter()
-    summary = build_dataset(args.out, args.count, args.family, args.size, args.spp, args.start, ex)
+    try:
+        summary = build_dataset(args.out, args.count, args.family, args.size, args.spp,
+                                args.start, ex,
+                                progress=(lambda r: bar.update(1)) if bar is not None else None)
+    finally:
+        if bar is not None:
+            bar.close()
     print(f"dataset {args.out}: {summary['count']} complete samples; built {summary['built']}, "
           f"skipped {summary['skipped']} already done ({ex.kind}, {time.perf_counter() - t0:.1f} s)")
     return 0
@@ -256,7 +409,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .generate import FAMILIES, HARD_CASES
     from .presets import PRESETS
 
-    p = argparse.ArgumentParser(prog="mpib", description=__doc__.split("\n")[0],
+    p = _Parser(prog="mpib", description=__doc__.split("\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--version", action="version", version=f"mpib {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -264,12 +417,14 @@ def build_parser() -> argparse.ArgumentParser:
     g = sub.add_parser("generate", help="make a seeded random card scene",
                        description="Write a random card scene (scene.json + cards/*.exr). "
                                    "The same seed gives the same files, byte for byte.")
-    g.add_argument("--seed", type=int, default=0, help="non-negative integer (default 0)")
+    g.add_argument("--seed", type=_COUNT, default=0, help="non-negative integer (default 0)")
     g.add_argument("--family", choices=FAMILIES, default="constant",
                    help="constant: fronto-parallel cards; varying: tilted planes")
     g.add_argument("--case", choices=HARD_CASES, default=None, help="force one named hard case")
     g.add_argument("--size", type=_parse_size, default=(256, 256), help="WxH (default 256x256)")
     g.add_argument("--out", required=True, help="output scene directory")
+    g.add_argument("--force", action="store_true", help="replace a scene already in --out")
+    _add_memory_option(g)
     g.set_defaults(func=cmd_generate)
 
     r = sub.add_parser("render", help="render a scene to EXR + PNG",
@@ -280,31 +435,32 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--engine", default="trace", choices=["trace", "mitsuba", "cycles"])
     r.add_argument("--aperture", choices=["sobol", "grid"], default="sobol",
                    help="sobol: scrambled 4-D Sobol (default); grid: the official square grid")
-    r.add_argument("--spp", type=int, default=1024,
+    r.add_argument("--spp", type=_POSITIVE_INT, default=1024,
                    help="samples per pixel (trace with --aperture sobol, cycles, mitsuba)")
     r.add_argument("--variant", default=None,
                    help="Mitsuba variant (default: probed: cuda_ad_rgb, llvm_ad_rgb, scalar_rgb)")
-    r.add_argument("--grid-side", type=int, default=51,
+    r.add_argument("--grid-side", type=_POSITIVE_INT, default=51,
                    help="grid points per side for --aperture grid (51 = 1,957 samples)")
     r.add_argument("--pixel", choices=["box", "centre"], default="box",
                    help="box: average over the pixel area (canonical); centre: pixel centres")
-    r.add_argument("--seed", type=int, default=0, help="sample set seed")
+    r.add_argument("--seed", type=_COUNT, default=0, help="sample set seed")
     r.add_argument("--backend", choices=["auto", "numpy", "llvm", "cuda"], default="auto")
     r.add_argument("--lookup", choices=["nearest", "bilinear"], default="nearest")
     r.add_argument("--order", choices=["depth", "fixed"], default="depth",
                    help="depth: per-ray depth sort; fixed: the official generator's order")
-    r.add_argument("--focus-disparity", type=float, default=None, help="override d_f (1/scene-unit)")
-    r.add_argument("--blur-parameter", type=float, default=None, help="override A (px per unit disparity)")
+    r.add_argument("--focus-disparity", type=_FINITE, default=None, help="override d_f (1/scene-unit)")
+    r.add_argument("--blur-parameter", type=_FINITE, default=None, help="override A (px per unit disparity)")
     r.add_argument("--no-preview", action="store_true", help="do not write the PNG preview")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    _add_memory_option(r)
     r.set_defaults(func=cmd_render)
 
     d = sub.add_parser("demo", help="the main job on an embedded default scene",
                        description="Generate the default scenes (both families), render them "
                                    "and write a short report.")
     d.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
-    d.add_argument("--size", type=int, default=256, help="image side in pixels (default 256)")
-    d.add_argument("--spp", type=int, default=1024, help="ray tracer samples per pixel")
+    d.add_argument("--size", type=_POSITIVE_INT, default=256, help="image side in pixels (default 256)")
+    d.add_argument("--spp", type=_POSITIVE_INT, default=1024, help="ray tracer samples per pixel")
     d.add_argument("--backend", choices=["auto", "numpy", "llvm", "cuda"], default="auto")
     d.set_defaults(func=cmd_demo)
 
@@ -319,7 +475,7 @@ def build_parser() -> argparse.ArgumentParser:
     mode.add_argument("--quick", action="store_true",
                       help="small scenes, a few minutes on 2 cores (the default)")
     mode.add_argument("--full", action="store_true", help="larger scenes and more samples (slow)")
-    b.add_argument("--workers", type=int, default=0,
+    b.add_argument("--workers", type=_COUNT, default=0,
                    help="spread per-scene work over local processes (times then share the machine)")
     b.add_argument("--scheduler", default=None,
                    help="Dask scheduler address, or 'local' for a LocalCluster")
@@ -332,7 +488,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("reference", help="reference EXR")
     c.add_argument("test", help="test EXR")
     c.add_argument("--mask", help="mask (EXR channel Y/A/R > 0.5, or a PNG > 127)")
-    c.add_argument("--peak", type=float, default=None,
+    c.add_argument("--peak", type=_POSITIVE, default=None,
                    help="HDR data range (default: the reference's largest value, at least 1)")
     c.add_argument("--no-flip", action="store_true", help="skip FLIP")
     c.add_argument("--json", action="store_true", help="print JSON")
@@ -359,6 +515,7 @@ def build_parser() -> argparse.ArgumentParser:
     lens.add_argument("--blur-parameter", type=float,
                       help="A, pixels per unit disparity (not with the lens options)")
     lens.add_argument("--fstop", type=float, help="f-number N")
+    # checked by camera_header.resolve, whose messages name the option and the bound
     lens.add_argument("--focal-mm", type=float, help="focal length in mm")
     lens.add_argument("--sensor-mm", type=float,
                       help="sensor width in mm (default: the header's, else 36)")
@@ -375,23 +532,29 @@ def build_parser() -> argparse.ArgumentParser:
                         "Depth; ordered far to near by median depth); view layers named "
                         "mpib_group_<k> are read so without this option")
     f.add_argument("--preset", choices=list(PRESETS), default="default")
-    f.add_argument("--far-limit", type=float, default=1e9,
-                   help="depth at or beyond this is infinitely far (Cycles writes 1e10)")
-    f.add_argument("--no-preview", action="store_true")
+    f.add_argument("--far-limit", type=_POSITIVE, default=1e9,
+                   help="depth (scene units) at or beyond which a pixel is infinitely far "
+                        "(default 1e9; Cycles writes 1e10 for the sky)")
+    f.add_argument("--view-layer", metavar="NAME",
+                   help="the Blender view layer to refocus, when the EXR holds several")
+    f.add_argument("--no-preview", action="store_true", help="do not write the PNG preview")
+    f.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    _add_memory_option(f)
     f.set_defaults(func=cmd_refocus)
 
     ds = sub.add_parser("dataset", help="many generated scenes with their ray-traced references",
                         description="Build a dataset of generated card scenes and their renders "
                                     "(one folder per seed, written atomically; a rerun resumes).")
     ds.add_argument("--out", required=True, help="dataset folder")
-    ds.add_argument("--count", type=int, required=True, help="number of samples")
-    ds.add_argument("--start", type=int, default=0, help="first seed (default 0)")
+    ds.add_argument("--count", type=_POSITIVE_INT, required=True, help="number of samples")
+    ds.add_argument("--start", type=_COUNT, default=0, help="first seed (default 0)")
     ds.add_argument("--family", choices=["constant", "varying", "mixed"], default="mixed")
     ds.add_argument("--size", type=_parse_size, default=(256, 256), help="WxH (default 256x256)")
-    ds.add_argument("--spp", type=int, default=1024, help="ray tracer samples per pixel")
-    ds.add_argument("--workers", type=int, default=0, help="local worker processes (0: in process)")
+    ds.add_argument("--spp", type=_POSITIVE_INT, default=1024, help="ray tracer samples per pixel")
+    ds.add_argument("--workers", type=_COUNT, default=0, help="local worker processes (0: in process)")
     ds.add_argument("--scheduler", default=None,
                     help="Dask scheduler address (tcp://host:8786), or 'local' for a LocalCluster")
+    _add_memory_option(ds)
     ds.set_defaults(func=cmd_dataset)
 
     k = sub.add_parser("backends", help="which compute backends run here",
@@ -400,21 +563,53 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: Options whose value may start with "-" (a pixel outside the image, e.g. -1,10):
+#: argparse would take it for an option.
+_NEGATIVE_VALUE_OPTIONS = ("--focus-pixel",)
+
+
+def _join_option_values(argv: list[str]) -> list[str]:
+    out, i = [], 0
+    while i < len(argv):
+        a = argv[i]
+        if a in _NEGATIVE_VALUE_OPTIONS and i + 1 < len(argv) and argv[i + 1].startswith("-") \
+                and argv[i + 1][1:2].isdigit():
+            out.append(f"{a}={argv[i + 1]}")
+            i += 2
+            continue
+        out.append(a)
+        i += 1
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     from .atomic import OutputError
     from .exr import ExrError
+    from .executor import Terminated, raise_on_sigterm, restore_sigterm
     from .passes import PassError
     from .scene import SceneError
 
+    argv = _join_option_values(list(sys.argv[1:] if argv is None else argv))
     args = build_parser().parse_args(argv)
+    previous = raise_on_sigterm()
     try:
         return args.func(args)
-    except (CliError, SceneError, ExrError, OutputError, PassError, ValueError) as exc:
-        print(f"mpib {args.command}: error: {exc}", file=sys.stderr)
+    except (CliError, SceneError, ExrError, OutputError, PassError, ValueError, OSError) as exc:
+        text = " ".join(str(exc).split()) or type(exc).__name__
+        print(f"mpib {args.command}: error: {text}", file=sys.stderr)
         return 2
+    except MemoryError:
+        print(f"mpib {args.command}: error: out of memory; give smaller inputs or fewer "
+              f"samples (the estimate before the work was under --max-memory-gb)", file=sys.stderr)
+        return 2
+    except Terminated:
+        print(f"mpib {args.command}: terminated", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
         print(f"mpib {args.command}: interrupted", file=sys.stderr)
         return 130
+    finally:
+        restore_sigterm(previous)
 
 
 if __name__ == "__main__":

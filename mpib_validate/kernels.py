@@ -30,7 +30,7 @@ Convolution paths (all compute the same correlation on a padded array, "valid" m
 
 from __future__ import annotations
 
-import functools
+import collections
 import math
 
 import numpy as np
@@ -44,27 +44,86 @@ from .samples import concentric_disk
 FFT_FLOOR = 1e-12
 
 
+#: Stratified points per unit of ``8 x radius`` along each side of the unit square: the
+#: grid is ``m x m`` with ``m = max(32, ceil(8 |r|))`` (``64 / pi``, about 20 points per
+#: square pixel of the disk at any radius; at least 32 per side for small disks).
+POINTS_PER_RADIUS = 8.0
+
+#: Largest ``|d(u, v)|`` per unit ``|d(x, y)|`` of the inverse concentric map (in the
+#: max-norm over ``(u, v)``): ``sqrt(1 + 16 / pi^2) / 2`` (the angular stretch along the
+#: wedge diagonals). Bounds how far a tap's tent support reaches in the unit square.
+_INVERSE_LIPSCHITZ = math.sqrt(1.0 + 16.0 / math.pi ** 2) / 2.0
+
+#: Points splatted per batch (bounds the splat's working memory to ~100 MB).
+_SPLAT_BATCH = 1 << 20
+
+
+def _grid_side(radius: float, k: int = 1) -> int:
+    """Side ``m`` of the stratified grid over the unit square for a disk of ``radius``
+    px (divisible by ``k`` for ``k x k`` sub-apertures)."""
+    m = max(32, int(math.ceil(POINTS_PER_RADIUS * abs(radius))))
+    return m if k == 1 else max(m // k, 8) * k
+
+
+def _grid_to_disk(iu: np.ndarray, iv: np.ndarray, m: int, radius: float) -> np.ndarray:
+    """Points ``(P, 2)`` (x, y) of grid cells ``(iu, iv)`` of the ``m x m`` grid, mapped
+    onto the disk of ``radius`` by the concentric map."""
+    mu, nu = concentric_disk((iu + 0.5) / m, (iv + 0.5) / m)
+    return np.stack([mu * radius, nu * radius], axis=1)
+
+
 def disk_points(radius: float, cell: tuple[int, int, int] | None = None) -> np.ndarray:
     """Stratified points covering the disk of ``radius`` pixels, shape ``(P, 2)`` as (x, y).
 
-    The unit square is split into an ``m x m`` grid (``m`` grows with the radius so that
-    there are >= ~16 points per square pixel), mapped onto the disk by the concentric
-    map (area preserving, so the points are equally weighted). ``cell=(i, j, k)`` keeps
-    only the points of sub-aperture ``(i, j)`` of a ``k x k`` partition of the square:
-    ``k^2`` equal-area parts of the aperture.
+    The unit square is split into an ``m x m`` grid (:func:`_grid_side`: ~20 points per
+    square pixel at any radius), mapped onto the disk by the concentric map (area
+    preserving, so the points are equally weighted). ``cell=(i, j, k)`` keeps only the
+    points of sub-aperture ``(i, j)`` of a ``k x k`` partition of the square: ``k^2``
+    equal-area parts of the aperture. All ``m^2`` points: the kernels use only those
+    near the edges (:func:`_edge_points`).
     """
-    m = int(np.clip(math.ceil(8.0 * abs(radius)), 32, 512))
-    if cell is not None:
-        k = cell[2]
-        m = max(m // k, 8) * k
-    t = (np.arange(m) + 0.5) / m
-    u, v = np.meshgrid(t, t, indexing="xy")
-    if cell is not None:
-        i, j, k = cell
-        sel = (np.floor(u * k) == i) & (np.floor(v * k) == j)
-        u, v = u[sel], v[sel]
-    mu, nu = concentric_disk(u.ravel(), v.ravel())
-    return np.stack([mu * radius, nu * radius], axis=1)
+    i, j, k = cell if cell is not None else (0, 0, 1)
+    m = _grid_side(radius, k)
+    n = m // k
+    iu, iv = np.meshgrid(np.arange(i * n, (i + 1) * n), np.arange(j * n, (j + 1) * n),
+                         indexing="xy")
+    return _grid_to_disk(iu.ravel(), iv.ravel(), m, radius)
+
+
+def _edge_indices(lo: int, n: int, t: int):
+    """Grid indices ``lo .. lo + n - 1`` split into the ``t`` nearest each end (the
+    frame) and the rest."""
+    idx = np.arange(lo, lo + n)
+    near = (idx < lo + t) | (idx >= lo + n - t)
+    return idx[near], idx[~near]
+
+
+def _edge_points(radius: float, cell, width_uv: float):
+    """The grid points of ``cell`` (whole disk if ``None``) that lie within ``width_uv``
+    (unit-square units) of the cell's edges, as batches of ``(P, 2)`` points; and the
+    weight of one point, ``1 / (points in the cell)``.
+
+    Only these points reach taps that are not on the kernel's exact plateau (see
+    :func:`_disk_cached`), so the work grows with the rim, not the area.
+    """
+    i, j, k = cell if cell is not None else (0, 0, 1)
+    m = _grid_side(radius, k)
+    n = m // k
+    t = min(n, int(math.ceil(width_uv * m)) + 1)
+    u_near, u_mid = _edge_indices(i * n, n, t)
+    v_near, _ = _edge_indices(j * n, n, t)
+    v_all = np.arange(j * n, (j + 1) * n)
+    # rows near a u-edge (all of their columns), then the other rows' columns near a v-edge
+    blocks = [(u_near, v_all), (u_mid, v_near)]
+    batches = []
+    for us, vs in blocks:
+        if us.size == 0 or vs.size == 0:
+            continue
+        per = max(1, _SPLAT_BATCH // vs.size)
+        for s in range(0, us.size, per):
+            iu, iv = np.meshgrid(us[s:s + per], vs, indexing="ij")
+            batches.append((iu.ravel(), iv.ravel()))
+    return m, batches, 1.0 / (n * n)
 
 
 def splat(points: np.ndarray) -> np.ndarray:
@@ -75,55 +134,135 @@ def splat(points: np.ndarray) -> np.ndarray:
     """
     if len(points) == 0:
         raise ValueError("cannot make a kernel from no points")
-    R = int(math.ceil(float(np.abs(points).max()) - 1e-9)) if np.abs(points).max() > 0 else 0
-    n = 2 * R + 1
+    R = _support_radius(points)
+    k = np.zeros((2 * R + 1, 2 * R + 1))
+    _splat_into(k, points, 1.0 / len(points))
+    return k
+
+
+def _support_radius(points: np.ndarray) -> int:
+    top = float(np.abs(points).max()) if len(points) else 0.0
+    return int(math.ceil(top - 1e-9)) if top > 0 else 0
+
+
+def _splat_into(k: np.ndarray, points: np.ndarray, weight: float) -> None:
+    """Add the tent splat of ``points`` (each of ``weight``) to the kernel ``k`` in place."""
+    n = k.shape[0]
+    R = (n - 1) // 2
     x = points[:, 0] + R
     y = points[:, 1] + R
     x0 = np.clip(np.floor(x), 0, n - 1)
     y0 = np.clip(np.floor(y), 0, n - 1)
     fx, fy = x - x0, y - y0
-    k = np.zeros(n * n + 2 * n + 2)
-    w = 1.0 / len(points)
     ix0, iy0 = x0.astype(np.int64), y0.astype(np.int64)
+    flat = k.reshape(-1)
     for dx, dy, wt in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)),
                        (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
         ix = np.minimum(ix0 + dx, n - 1)
         iy = np.minimum(iy0 + dy, n - 1)
-        k += np.bincount(iy * n + ix, weights=wt * w, minlength=k.size)
-    return k[:n * n].reshape(n, n)
+        np.add.at(flat, iy * n + ix, wt * weight)
 
 
-@functools.lru_cache(maxsize=512)
+#: Kernels kept for reuse, at most this many bytes in all (least recently used first
+#: out); a kernel larger than this is computed each time it is asked for.
+KERNEL_CACHE_BYTES = 256 << 20
+_cache: "collections.OrderedDict" = collections.OrderedDict()
+
+
 def _disk_cached(radius_q: int, cell) -> np.ndarray:
-    r = abs(radius_q) / 1024.0
-    if r == 0.0:
-        return np.ones((1, 1))
-    k = splat(disk_points(math.copysign(r, radius_q), cell))
-    if cell is None:
-        k = _exact_interior(k, r)
+    key = (radius_q, cell)
+    k = _cache.get(key)
+    if k is not None:
+        _cache.move_to_end(key)
+        return k
+    k = _disk_kernel(math.copysign(abs(radius_q) / 1024.0, radius_q), cell)
+    k.setflags(write=False)
+    if k.nbytes <= KERNEL_CACHE_BYTES:
+        _cache[key] = k
+        total = sum(v.nbytes for v in _cache.values())
+        while total > KERNEL_CACHE_BYTES:
+            _, old = _cache.popitem(last=False)
+            total -= old.nbytes
     return k
 
 
-def _exact_interior(k: np.ndarray, r: float) -> np.ndarray:
-    """Set the taps whose tent support ``[q - 1, q + 1]^2`` lies inside the disk to their
-    exact value ``1 / (pi r^2)``, and rescale the others so that the kernel sums to one.
+def _disk_kernel(rho: float, cell) -> np.ndarray:
+    """The canonical kernel of signed radius ``rho`` (see :func:`disk_kernel`).
 
-    The splat estimates those taps to ~1e-4; the exact plateau also lets a row of the
-    kernel be written as a few nested boxes (see :func:`row_boxes`).
+    Taps whose whole tent support ``[q - 1, q + 1]^2`` lies inside the disk (or inside
+    the sub-aperture's part of it) have the exact value ``k^2 / (pi r^2)`` (the point
+    density; ``k = 1`` for the whole disk). Only the other taps are estimated, by the
+    tent splat of the grid points that can reach them: those within the tent's reach
+    of the region's edges (:func:`_edge_points`). The estimate is then rescaled so that
+    the kernel sums to one. The cost grows with the rim length, and the point density
+    (~20 per square pixel) is the same at every radius.
     """
-    R = kernel_radius(k)
-    q = np.arange(-R, R + 1, dtype=np.float64)
-    far = np.maximum(np.abs(q)[None, :] + 1.0, 0.0) ** 2 + (np.abs(q)[:, None] + 1.0) ** 2
-    inside = far <= r * r
-    if not inside.any():
-        return k
-    plateau = 1.0 / (math.pi * r * r)
-    out = k.copy()
+    r = abs(rho)
+    if r == 0.0:
+        return np.ones((1, 1))
+    k = 1 if cell is None else cell[2]
+    if cell is None:
+        # a tap is inside when its support's far corner is: (|q| + 1)^2 summed <= r^2.
+        # Points further than 2 sqrt(2) px inside the rim reach inside taps only.
+        width = (2.0 * math.sqrt(2.0) + 0.01) / (2.0 * r)
+    else:
+        # in unit-square units, a point moves at most lambda / r per pixel: a support
+        # (half-diagonal sqrt 2) spans +-delta, two supports +-2 delta
+        delta = math.sqrt(2.0) * _INVERSE_LIPSCHITZ / r * (1.0 + 1e-9)
+        width = 2.0 * delta
+    m, batches, weight = _edge_points(rho, cell, width)
+    pts = [_grid_to_disk(iu, iv, m, rho) for iu, iv in batches]
+    R = max(_support_radius(p) for p in pts)
+    out = np.zeros((2 * R + 1, 2 * R + 1))
+    for p in pts:
+        _splat_into(out, p, weight)
+    inside = _inside_disk(R, r) if cell is None else _inside_cell(R, rho, cell, delta)
+    n_inside = int(inside.sum())
+    if n_inside == 0:
+        return out
+    plateau = k * k / (math.pi * r * r)
+    out[inside] = 0.0
+    edge = out.sum()
+    out *= (1.0 - plateau * n_inside) / edge
     out[inside] = plateau
-    rest = 1.0 - plateau * inside.sum()
-    edge = k[~inside].sum()
-    out[~inside] *= rest / edge
     return out
+
+
+def _inside_disk(R: int, r: float) -> np.ndarray:
+    """Taps whose tent support lies inside the disk of radius ``r``."""
+    q = np.abs(np.arange(-R, R + 1, dtype=np.float64)) + 1.0
+    return (q[None, :] ** 2 + q[:, None] ** 2) <= r * r
+
+
+def _concentric_inverse(x: np.ndarray, y: np.ndarray):
+    """Inverse of :func:`mpib_validate.samples.concentric_disk`: unit-disk points to the
+    unit square (extended beyond the disk by the same formulas)."""
+    s = np.hypot(x, y)
+    th = np.arctan2(y, x)
+    q = math.pi / 4.0
+    right = np.abs(th) <= q
+    left = np.abs(th) >= 3 * q
+    top = ~right & ~left & (th > 0)
+    a = np.where(right, s, np.where(left, -s, np.where(top, s * (2 * q - th) / q,
+                                                       s * (2 * q + th) / q)))
+    phi_left = np.where(th > 0, th - math.pi, th + math.pi)
+    b = np.where(right, s * th / q, np.where(left, -s * phi_left / q,
+                                             np.where(top, s, -s)))
+    return 0.5 * (a + 1.0), 0.5 * (b + 1.0)
+
+
+def _inside_cell(R: int, rho: float, cell, delta: float) -> np.ndarray:
+    """Taps whose tent support maps wholly into sub-aperture ``cell``: the tap centre's
+    unit-square position is at least ``delta`` inside the cell (the support's reach)."""
+    i, j, k = cell
+    q = np.arange(-R, R + 1, dtype=np.float64) / rho
+    inside = np.zeros((2 * R + 1, 2 * R + 1), bool)
+    rows = max(1, (1 << 22) // (2 * R + 1))
+    for y0 in range(0, 2 * R + 1, rows):
+        u, v = _concentric_inverse(q[None, :], q[y0:y0 + rows, None])
+        inside[y0:y0 + rows] = ((u - delta >= i / k) & (u + delta <= (i + 1) / k)
+                                & (v - delta >= j / k) & (v + delta <= (j + 1) / k))
+    return inside
 
 
 def row_boxes(kernel: np.ndarray, rel_tol: float = 1e-7) -> list[tuple[int, int, int, float]]:
@@ -174,9 +313,7 @@ def disk_kernel(rho: float, cell: tuple[int, int, int] | None = None) -> np.ndar
     q = int(round(rho * 1024.0))
     if cell is None:
         q = abs(q)
-    k = _disk_cached(q, cell)
-    k.setflags(write=False)
-    return k
+    return _disk_cached(q, cell)
 
 
 def soft_disk(radius: float) -> np.ndarray:

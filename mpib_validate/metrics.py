@@ -46,15 +46,22 @@ def psnr(ref, test, mask=None, peak: float = 1.0) -> float:
     return float(peak_signal_noise_ratio(a, b, data_range=peak))
 
 
+#: Side of the Gaussian SSIM window (sigma 1.5, truncated at 3.5 sigma, as
+#: scikit-image sizes it: 2 * int(3.5 * 1.5 + 0.5) + 1); SSIM is undefined (NaN) on
+#: smaller images.
+SSIM_WINDOW = 11
+
+
 def ssim(ref, test, mask=None, peak: float = 1.0) -> float:
     """Gaussian SSIM (window 11, sigma 1.5) with data range ``peak``; the mean of the
-    SSIM map over all pixels or over ``mask`` (scikit-image)."""
+    SSIM map over all pixels or over ``mask`` (scikit-image). NaN for images smaller
+    than :data:`SSIM_WINDOW` on a side."""
     from skimage.metrics import structural_similarity
 
     a, b = _rgb(ref), _rgb(test)
     if a.shape != b.shape:
         raise ValueError(f"image sizes differ: {a.shape} and {b.shape}")
-    if min(a.shape[:2]) < 7:
+    if min(a.shape[:2]) < SSIM_WINDOW:
         return math.nan
     _, smap = structural_similarity(a, b, data_range=peak, channel_axis=2, gaussian_weights=True,
                                     sigma=1.5, use_sample_covariance=False, full=True)
@@ -152,6 +159,8 @@ def all_metrics(ref, test, mask=None, peak: float | None = None, with_flip: bool
     a, b = _rgb(ref), _rgb(test)
     if peak is None:
         peak = max(1.0, float(a.max()))
+    if not (math.isfinite(peak) and peak > 0):
+        raise ValueError(f"the HDR data range (peak) must be finite and > 0, got {peak}")
     ac, bc = np.clip(a, 0, 1), np.clip(b, 0, 1)
     out = {
         "psnr": psnr(ac, bc), "ssim": ssim(ac, bc),

@@ -17,7 +17,7 @@ import json
 import math
 import re
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -46,28 +46,59 @@ class Passes:
     #: ``alpha`` and ``depth`` above are then the groups composited with "over" (and the
     #: nearest covering group's depth), for focusing and display
     groups: list | None = None
+    notices: list = field(default_factory=list)  # one line each, e.g. clamped negatives
 
 
-def _colour_prefix(img, all_in_focus: bool = True) -> str:
+def view_layers(img) -> list[str]:
+    """Blender view layers in an EXR: the ``<layer>`` of each ``<layer>.Combined.R``."""
+    return sorted(n[:-len(".Combined.R")] for n in img.channels if n.endswith(".Combined.R"))
+
+
+def _colour_prefix(img, all_in_focus: bool = True, view_layer: str | None = None) -> str:
     """Channel prefix of the colour: ``AllInFocus.`` in an mpib render (its own R, G, B
     are already defocused) when ``all_in_focus``, else plain R, G, B, else Blender's
-    ``<layer>.Combined.``."""
+    ``<layer>.Combined.`` (the one view layer, or ``view_layer``)."""
     ch = img.channels
+    layers = view_layers(img)
+    if view_layer is not None:
+        if view_layer in layers:
+            return f"{view_layer}.Combined."
+        found = ", ".join(layers) if layers else "none"
+        raise ExrError(f"no view layer '{view_layer}' in '{img.path}' (view layers with a "
+                       f"Combined pass: {found})")
     if all_in_focus and "AllInFocus.R" in ch:
         return "AllInFocus."
     if "R" in ch:
         return ""
-    combined = sorted({n[:-1] for n in ch if n.endswith("Combined.R")})
-    if len(combined) == 1:
-        return combined[0]
+    if len(layers) == 1:
+        return f"{layers[0]}.Combined."
+    if len(layers) > 1:
+        raise ExrError(f"'{img.path}' holds {len(layers)} view layers ({', '.join(layers)}); "
+                       f"choose one with --view-layer NAME")
     raise ExrError(f"no colour channels (R, G, B, AllInFocus.* or *.Combined.*) in "
                    f"'{img.path}'; channels: {', '.join(sorted(ch))}")
 
 
-def read_colour(path, all_in_focus: bool = True) -> np.ndarray:
-    """``(H, W, 4)`` colour of an EXR (see :func:`_colour_prefix` for which channels)."""
+def _refuse_non_finite(rgba: np.ndarray, source: str) -> None:
+    """Raise :class:`PassError` naming ``source`` and the first NaN or infinite value
+    (one would turn a whole blurred channel into NaN)."""
+    bad = ~np.isfinite(rgba)
+    if bad.any():
+        y, x, c = np.argwhere(bad)[0]
+        raise PassError(f"{source}: colour is NaN or infinite at {int(bad.sum())} value(s), "
+                        f"first at (row {y}, column {x}, channel {'RGBA'[c]}): "
+                        f"{rgba[y, x, c]}")
+
+
+def read_colour(path, all_in_focus: bool = True, view_layer: str | None = None) -> np.ndarray:
+    """``(H, W, 4)`` colour of an EXR (see :func:`_colour_prefix` for which channels).
+    Raises :class:`PassError` naming the file and the first pixel for NaN or infinite
+    values."""
     img = read_exr(path)
-    return rgba_from(img, _colour_prefix(img, all_in_focus))
+    prefix = _colour_prefix(img, all_in_focus, view_layer)
+    rgba = rgba_from(img, prefix)
+    _refuse_non_finite(rgba, f"'{path}' ({prefix or 'R, G, B'})")
+    return rgba
 
 
 def _depth_channel(img, path) -> np.ndarray:
@@ -83,19 +114,42 @@ def _depth_channel(img, path) -> np.ndarray:
                     f"Layer properties); channels: {', '.join(sorted(img.channels))}")
 
 
-def load_passes(path, depth_path=None) -> Passes:
+def _clamp_negative(colour: np.ndarray, source: str) -> str | None:
+    """Clamp negative colour to 0 in place; return a one-line notice, or None.
+
+    Radiance cannot be negative; small negative values come from denoisers, sharpening
+    pixel filters or compositing, and would darken what they are blurred over."""
+    neg = colour < 0
+    if not neg.any():
+        return None
+    y, x, _ = np.argwhere(neg)[0]
+    lowest = float(colour.min())
+    np.maximum(colour, 0.0, out=colour)
+    return (f"{source}: {int(neg.sum())} negative colour value(s) (lowest {lowest:.4g}, first "
+            f"at row {y}, column {x}) clamped to 0")
+
+
+def load_passes(path, depth_path=None, view_layer: str | None = None) -> Passes:
     """Read colour and depth, and the camera of the colour file's header (see
     :mod:`mpib_validate.camera_header`). Raises :class:`PassError`/:class:`ExrError`
-    naming the file for a missing depth pass or mismatched sizes, and
-    :class:`~mpib_validate.camera_header.CameraHeaderError` for a malformed camera."""
+    naming the file for a missing depth pass, mismatched sizes or NaN/infinite colour,
+    and :class:`~mpib_validate.camera_header.CameraHeaderError` for a malformed camera;
+    negative colour is clamped to 0 with a notice in ``Passes.notices``. ``view_layer``
+    picks one of several Blender view layers in the file."""
     img = read_exr(path)
-    prefix = _colour_prefix(img)
+    prefix = _colour_prefix(img, view_layer=view_layer)
     rgba = rgba_from(img, prefix)
     colour = rgba[..., :3]
+    source = f"'{path}' ({prefix or 'R, G, B'})"
+    _refuse_non_finite(rgba, source)
     camera = read_camera(img.header, path)
     if depth_path is None:
         try:
-            depth = img.channels[find_pass(img, "Depth")].astype(np.float64)
+            if view_layer is not None and f"{view_layer}.Depth.Z" in img.channels:
+                name = f"{view_layer}.Depth.Z"
+            else:
+                name = find_pass(img, "Depth")
+            depth = img.channels[name].astype(np.float64)
         except ExrError:
             raise PassError(f"no Depth pass in '{path}': enable the Z (Depth) pass in Blender's "
                             f"View Layer properties, or give the depth as a separate file; "
@@ -107,8 +161,10 @@ def load_passes(path, depth_path=None) -> Passes:
     if depth.shape != colour.shape[:2]:
         raise PassError(f"sizes differ: colour in '{path}' is {colour.shape[1]}x{colour.shape[0]}, "
                         f"depth in '{dsrc}' is {depth.shape[1]}x{depth.shape[0]}")
-    return Passes(colour.astype(np.float32), depth, f"{path}:{prefix or 'RGB'}", dsrc, camera,
-                  rgba[..., 3].astype(np.float32))
+    colour = colour.astype(np.float32)
+    notice = _clamp_negative(colour, source)
+    return Passes(colour, depth, f"{path}:{prefix or 'RGB'}", dsrc, camera,
+                  rgba[..., 3].astype(np.float32), notices=[notice] if notice else [])
 
 
 #: View layers named like this (``mpib_group_0`` farthest, see

@@ -16,6 +16,7 @@ format is documented in ``docs/scene-format.md`` and is meant to be written by h
 
 from __future__ import annotations
 
+import difflib
 import json
 import math
 import os
@@ -153,6 +154,8 @@ class Scene:
     camera: Camera
     cards: list[Card] = field(default_factory=list)
     metadata: dict = field(default_factory=dict)
+    #: the files it was read from (``scene.json`` and every texture), when loaded
+    sources: list[Path] = field(default_factory=list)
 
     def validate(self, source: str = "scene") -> "Scene":
         """Check everything a renderer relies on; raise :class:`SceneError` naming card and field."""
@@ -182,7 +185,7 @@ class Scene:
         """Same cards, camera with some fields replaced (e.g. ``focus_disparity=0.3``)."""
         cam = self.camera.to_dict()
         cam.update(changes)
-        return Scene(Camera(**cam), self.cards, dict(self.metadata))
+        return Scene(Camera(**cam), self.cards, dict(self.metadata), list(self.sources))
 
 
 # --------------------------------------------------------------------------------------
@@ -307,6 +310,24 @@ def save_scene(scene: Scene, directory: str | os.PathLike, *, half: bool = False
     return path
 
 
+#: The fields each object of ``scene.json`` may have (docs/scene-format.md).
+TOP_FIELDS = ("format", "version", "camera", "cards", "metadata")
+CAMERA_FIELDS = ("width", "height", "blur_parameter", "focus_disparity", "focal_length_px")
+CARD_FIELDS = ("name", "texture", "size", "offset", "disparity", "plane")
+PLANE_FIELDS = ("a", "b", "c")
+
+
+def _refuse_unknown(obj: dict, known, where: str) -> None:
+    """Raise :class:`SceneError` for a key that is not a field, naming the nearest one
+    (a typo such as ``ofset`` would otherwise be ignored silently)."""
+    for key in obj:
+        if key in known:
+            continue
+        near = difflib.get_close_matches(str(key), known, n=1, cutoff=0.5)
+        hint = f"; did you mean '{near[0]}'?" if near else ""
+        raise SceneError(f"{where}: unknown field '{key}'{hint} (fields: {', '.join(known)})")
+
+
 def _field(obj: dict, key: str, where: str, default=KeyError):
     if key not in obj:
         if default is KeyError:
@@ -327,6 +348,7 @@ def _plane_from_json(entry: dict, where: str) -> Plane:
         p = entry["plane"]
         if not isinstance(p, dict):
             raise SceneError(f"{where} field 'plane': must be an object {{a, b, c}}, got {p!r}")
+        _refuse_unknown(p, PLANE_FIELDS, f"{where} field 'plane'")
         vals = [_finite_number(_field(p, k, f"{where} field 'plane'"), f"{where} field 'plane.{k}'")
                 for k in ("a", "b", "c")]
         plane = Plane(*vals)
@@ -364,6 +386,7 @@ def load_scene(path: str | os.PathLike) -> Scene:
     src = str(json_path)
     if not isinstance(doc, dict):
         raise SceneError(f"{src}: top level must be a JSON object")
+    _refuse_unknown(doc, TOP_FIELDS, src)
     if doc.get("format", FORMAT_NAME) != FORMAT_NAME:
         raise SceneError(f"{src}: field 'format' must be '{FORMAT_NAME}', got {doc.get('format')!r}")
     if doc.get("version", FORMAT_VERSION) != FORMAT_VERSION:
@@ -372,28 +395,39 @@ def load_scene(path: str | os.PathLike) -> Scene:
     cam = _field(doc, "camera", src)
     if not isinstance(cam, dict):
         raise SceneError(f"{src}: field 'camera' must be an object")
-    known = {"width", "height", "blur_parameter", "focus_disparity", "focal_length_px"}
-    unknown = set(cam) - known
-    if unknown:
-        raise SceneError(f"{src}: camera has unknown field(s) {sorted(unknown)}; known: {sorted(known)}")
+    _refuse_unknown(cam, CAMERA_FIELDS, f"{src}: camera")
     for key in ("width", "height", "blur_parameter", "focus_disparity"):
         _field(cam, key, f"{src}: camera")
+    for key in ("width", "height"):  # Camera derives its default focal length from them
+        v = cam[key]
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            raise SceneError(f"{src}: camera field '{key}': must be a positive integer, got {v!r}")
     camera = Camera(**cam)
     validate_camera(camera, src)
 
     cards_json = _field(doc, "cards", src)
     if not isinstance(cards_json, list):
         raise SceneError(f"{src}: field 'cards' must be a list")
+    metadata = doc.get("metadata", {})
+    if not isinstance(metadata, dict):
+        raise SceneError(f"{src}: field 'metadata' must be an object, got {metadata!r}")
     cards = []
+    sources = [json_path]
     for i, entry in enumerate(cards_json):
         if not isinstance(entry, dict):
             raise SceneError(f"{src}: card #{i} must be an object")
         name = _field(entry, "name", f"{src}: card #{i}")
-        where = f"{src}: card '{name}'"
+        where = f"{src}: card '{name}'" if isinstance(name, str) else f"{src}: card #{i}"
+        _refuse_unknown(entry, CARD_FIELDS, where)
         tex_rel = _field(entry, "texture", where)
+        if not isinstance(tex_rel, str) or not tex_rel.strip():
+            raise SceneError(f"{where} field 'texture': must be the path of an EXR file "
+                             f"(relative to scene.json), got {tex_rel!r}")
         tex_path = (json_path.parent / tex_rel)
-        if not tex_path.exists():
-            raise SceneError(f"{where} field 'texture': file '{tex_path}' does not exist")
+        if not tex_path.is_file():
+            what = "is not a file" if tex_path.exists() else "does not exist"
+            raise SceneError(f"{where} field 'texture': file '{tex_path}' {what}")
+        sources.append(tex_path)
         try:
             rgba = rgba_from(read_exr(tex_path)).astype(np.float32, copy=False)
         except ExrError as exc:
@@ -408,4 +442,4 @@ def load_scene(path: str | os.PathLike) -> Scene:
         else:  # centred on the frame
             offset = ((camera.width - rgba.shape[1]) // 2, (camera.height - rgba.shape[0]) // 2)
         cards.append(Card(name, rgba, _plane_from_json(entry, where), offset))
-    return Scene(camera, cards, dict(doc.get("metadata", {}))).validate(src)
+    return Scene(camera, cards, dict(metadata), sources).validate(src)

@@ -25,9 +25,15 @@ def test_resume_skips_finished_samples_and_cleans_interruptions(tmp_path):
     s = build_dataset(out, 3, **SMALL)
     assert s["count"] == 3 and s["built"] == 3
     stamp = {p: p.stat().st_mtime_ns for p in out.glob("sample-*/render.exr")}
-    # an interrupted run: a half-built temporary folder, and one sample lost
-    (out / ".tmp-sample-000009-1-abcd").mkdir()
+    # an interrupted run: a half-built temporary folder whose process is gone, and one
+    # sample lost
     import shutil
+    import subprocess
+    import sys
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True).stdout.strip()
+    (out / f".tmp-sample-000009-{dead}-abcd").mkdir()
 
     shutil.rmtree(sample_dir(out, 1))
     s = build_dataset(out, 3, **SMALL)

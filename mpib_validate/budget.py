@@ -1,0 +1,382 @@
+"""What a job will cost, estimated before it starts, and the limit it is checked against.
+
+A colour image passed as depth, a random depth map, an f/0.01 lens or a billion
+samples do not fail: they run for minutes and then exhaust the memory. Each function
+here estimates the peak memory of one job from its inputs alone (sizes, the disparity
+values, the camera, the sample count), cheaply, so that the command line can refuse
+past a limit the user can raise (``--max-memory-gb``) with one line saying what is
+large, before any work or output.
+
+Refocusing (:func:`refocus_estimate`) follows what ``passes.layers_from_passes`` and
+``composite`` do:
+
+- planes: ``adaptive_planes`` over the intervals of the disparity values, spaced
+  ``2 tol / A`` (so the count grows with ``A`` times the disparity range: a colour
+  file read as depth, ``d = 1/Z`` up to 1/min(colour), gives thousands);
+- layers: each plane stores premultiplied RGBA float32 (16 B) over the bounding box
+  of its content. Every pixel is shared by the two planes around its disparity; the
+  boxes are taken on blocks of at most 256 x 256 per image and grown by the occlusion
+  reach ``A (d_near - d_far)`` of the depth edges in them (the hidden-background fill);
+- compositing: one layer at a time, padded by its kernel radius
+  ``R = ceil(A |d - d_f|) + 1`` and blurred by a float64 FFT of its four channels,
+  plus the kernel, the accumulator and the kernel cache;
+- the per-pixel working sets of the layer builder and of the output writers.
+
+The byte counts per pixel are measured (``tests/test_budget.py`` checks the estimate
+against the peak resident memory of real runs), not derived. Tracing
+(:func:`trace_estimate`) counts the sample set, the per-pixel accumulators and maps,
+and the textures.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+GIB = float(1 << 30)
+
+#: Default limit: this fraction of the machine's memory (or of the cgroup's limit).
+DEFAULT_FRACTION = 0.5
+
+#: Bytes per pixel of the layer builder's working set (depth edges, the fill's
+#: push-pull pyramid in float64, the sheets and their two plane shares), and the extra
+#: per pixel on a depth edge (its unmixing and its share of the fill). Measured with
+#: tracemalloc at 512x512: 241 B/px on flat depth, 545 B/px on random depth (99 % edge
+#: pixels).
+BUILD_BYTES_PER_PX = 250
+BUILD_BYTES_PER_EDGE_PX = 300
+#: Bytes per padded pixel of one layer's FFT blur (float32 input, float64 copy, the
+#: half spectrum of four channels, its inverse and the output). Measured.
+FFT_BYTES_PER_PX = 128
+#: Bytes per pixel of writing the result (premultiplied copy, EXR channels, sRGB PNG).
+WRITE_BYTES_PER_PX = 110
+#: Bytes per pixel of the inputs kept during the work (colour float32, depth and
+#: disparity float64).
+INPUT_BYTES_PER_PX = 28
+#: Bytes per sample of a lens sample set while it is made (Sobol points, the
+#: concentric map's temporaries, the kept float64 arrays).
+SAMPLE_BYTES = 160
+#: Bytes per pixel of the ray tracer (float64 accumulators, pinhole maps, result and
+#: its EXR channels) and per pixel and card (hit alpha, disparity, colour).
+TRACE_BYTES_PER_PX = 160
+TRACE_BYTES_PER_PX_CARD = 25
+#: Bytes per texel of a card texture (float32 RGBA, its premultiplied flat copy).
+TEXEL_BYTES = 48
+#: One numpy tile of the tracer (2^18 pixels), per card.
+TRACE_TILE_BYTES_PER_CARD = 16 << 20
+#: Mitsuba's JIT variants trace every sample of the frame as one wavefront.
+MITSUBA_BYTES_PER_LANE = 48
+#: Bytes per pixel of a generated scene (textures of the frame plus margin, for each
+#: of up to four cards, and the generator's float64 noise fields).
+GENERATE_BYTES_PER_PX = 700
+#: Dr.Jit and the tracer's pixel indices are 32-bit.
+MAX_PIXELS = (1 << 31) - 1
+
+
+class BudgetError(ValueError):
+    """A job whose estimated cost is past the limit; the message names the option."""
+
+
+@dataclass
+class Estimate:
+    """An estimated peak memory and its parts (bytes), with what drives it."""
+
+    what: str
+    parts: dict = field(default_factory=dict)
+    planes: int | None = None
+    largest_radius_px: float | None = None
+    peak: int | None = None  # when the parts are not simply added
+
+    @property
+    def bytes(self) -> int:
+        return int(self.peak if self.peak is not None else sum(self.parts.values()))
+
+    def largest_part(self) -> str:
+        return max(self.parts, key=self.parts.get) if self.parts else "total"
+
+    def describe(self) -> str:
+        bits = []
+        if self.planes is not None:
+            bits.append(f"about {self.planes} planes")
+        if self.largest_radius_px is not None:
+            bits.append(f"largest blur radius {self.largest_radius_px:.1f} px")
+        bits.append(f"estimated memory {format_bytes(self.bytes)}")
+        return ", ".join(bits)
+
+
+def format_bytes(n: float) -> str:
+    if n >= 1 << 40:
+        return f"{n / (1 << 40):.1f} TiB"
+    if n >= 1 << 30:
+        return f"{n / GIB:.1f} GB"
+    return f"{n / (1 << 20):.0f} MB"
+
+
+def machine_memory() -> int:
+    """Physical memory in bytes, or the cgroup's memory limit when that is smaller."""
+    try:
+        total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        total = 8 << 30
+    for path in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+        try:
+            with open(path) as fh:
+                text = fh.read().strip()
+        except OSError:
+            continue
+        if text.isdigit() and 0 < int(text) < total:
+            total = int(text)
+    return int(total)
+
+
+def memory_limit(gb: float | None = None) -> int:
+    """The limit in bytes: ``gb`` GiB if given, else :data:`DEFAULT_FRACTION` of
+    :func:`machine_memory`."""
+    if gb is None:
+        return int(DEFAULT_FRACTION * machine_memory())
+    return int(gb * GIB)
+
+
+def check(estimate: Estimate, limit: int, option: str = "--max-memory-gb") -> Estimate:
+    """Raise :class:`BudgetError` if ``estimate`` is past ``limit`` bytes."""
+    if estimate.bytes > limit:
+        part = estimate.largest_part()
+        raise BudgetError(
+            f"{estimate.what} would need about {format_bytes(estimate.bytes)} of memory "
+            f"({estimate.describe()}; largest part: {part} "
+            f"{format_bytes(estimate.parts.get(part, estimate.bytes))}), over the limit of "
+            f"{format_bytes(limit)}; raise it with {option} if this machine has the memory")
+    return estimate
+
+
+def check_pixels(width: int, height: int, what: str) -> None:
+    """Refuse images of more pixels than 32-bit indices reach."""
+    if int(width) * int(height) > MAX_PIXELS:
+        raise BudgetError(f"{what}: {width}x{height} is {int(width) * int(height):,} pixels; "
+                          f"the renderers index pixels with 32-bit integers (at most "
+                          f"{MAX_PIXELS:,})")
+
+
+# --------------------------------------------------------------------------------------
+# Refocusing
+
+
+def _blocks(D: np.ndarray, side: int = 256):
+    """Per-block minimum and maximum of ``D`` on a grid of at most ``side x side``
+    blocks; returns ``(lo, hi, block)`` with the block size in pixels."""
+    H, W = D.shape
+    b = max(1, math.ceil(max(H, W) / side))
+    ny, nx = -(-H // b), -(-W // b)
+    pad = np.pad(D, ((0, ny * b - H), (0, nx * b - W)), mode="edge")
+    v = pad.reshape(ny, b, nx, b)
+    return v.min(axis=(1, 3)), v.max(axis=(1, 3)), b
+
+
+def _presence_extent(s_lo: np.ndarray, s_hi: np.ndarray, n: int, axis: int):
+    """First and last block row (axis 0) or column (axis 1) holding each of ``n``
+    planes, given each block's plane interval ``[s_lo, s_hi]``."""
+    lines = s_lo.shape[axis]
+    first = np.full(n, lines, np.int64)
+    last = np.full(n, -1, np.int64)
+    for i in range(lines):
+        lo = np.take(s_lo, i, axis=axis)
+        hi = np.take(s_hi, i, axis=axis)
+        diff = np.bincount(lo, minlength=n + 1) - np.bincount(hi + 1, minlength=n + 1)
+        here = np.cumsum(diff[:n]) > 0
+        first = np.where(here & (first == lines), i, first)
+        last = np.where(here, i, last)
+    return first, last
+
+
+def _plane_boxes(D: np.ndarray, planes: np.ndarray, A: float, jump: float):
+    """Estimated ``(height, width)`` of each plane's content box (see the module
+    docstring)."""
+    H, W = D.shape
+    n = len(planes)
+    lo, hi, b = _blocks(D)
+    s_lo = np.clip(np.searchsorted(planes, lo, side="right") - 1, 0, n - 1)
+    s_hi = np.clip(np.searchsorted(planes, hi, side="right"), 0, n - 1)
+    r0, r1 = _presence_extent(s_lo, s_hi, n, 0)
+    c0, c1 = _presence_extent(s_lo, s_hi, n, 1)
+    h = np.where(r1 >= r0, np.minimum((r1 - r0 + 1) * b, H), 0)
+    w = np.where(c1 >= c0, np.minimum((c1 - c0 + 1) * b, W), 0)
+    # hidden background behind depth edges: a block whose 3x3 neighbourhood reaches
+    # nearer than its own farthest content by more than a jump may hold far-side edge
+    # pixels; the fill reaches A (d_near - d_far) from them
+    from scipy import ndimage
+
+    near = ndimage.maximum_filter(hi, size=3, mode="nearest")
+    reach = np.where(near - lo > jump, A * (near - lo), 0.0)
+    grow = np.zeros(n)
+    top = float(reach.max()) if reach.size else 0.0
+    level = 1.0
+    while level <= top:
+        sel = reach >= level
+        diff = (np.bincount(s_lo[sel], minlength=n + 1)
+                - np.bincount(s_hi[sel] + 1, minlength=n + 1))
+        grow = np.where(np.cumsum(diff[:n]) > 0, 2.0 * level, grow)
+        level *= 2.0
+    grow = np.minimum(grow, top)
+    g = np.ceil(grow).astype(np.int64)
+    h = np.where(h > 0, np.minimum(h + 2 * g, H), 0)
+    w = np.where(w > 0, np.minimum(w + 2 * g, W), 0)
+    return h, w
+
+
+def _edge_fraction(D: np.ndarray, jump: float) -> float:
+    """Fraction of pixels with a 4-neighbour more than ``jump`` away in disparity (the
+    pixels the layer builder unmixes)."""
+    edge = np.zeros(D.shape, bool)
+    dx = np.abs(np.diff(D, axis=1)) > jump
+    dy = np.abs(np.diff(D, axis=0)) > jump
+    edge[:, :-1] |= dx
+    edge[:, 1:] |= dx
+    edge[:-1] |= dy
+    edge[1:] |= dy
+    return float(edge.mean())
+
+
+#: Up to this many pixels the content intervals are found exactly (a sort of the
+#: values, as the layer builder does); beyond, on bins one plane step wide (an O(n)
+#: count that can merge two intervals less than two steps apart).
+EXACT_INTERVALS_PX = 1 << 22
+
+
+def _intervals(D: np.ndarray, step: float) -> list[tuple[float, float]]:
+    from .passes import _content_intervals
+
+    v = D.ravel()
+    if v.size <= EXACT_INTERVALS_PX:
+        return _content_intervals(v, step)
+    lo, hi = float(v.min()), float(v.max())
+    b = ((v - lo) / step).astype(np.int64)
+    n = int(b.max()) + 1
+    ids = np.flatnonzero(np.bincount(b, minlength=n)) if n <= 1 << 24 else np.unique(b)
+    breaks = np.flatnonzero(np.diff(ids) > 1)
+    starts = ids[np.concatenate([[0], breaks + 1])]
+    ends = ids[np.concatenate([breaks, [ids.size - 1]])]
+    return [(lo + s * step, min(lo + (e + 1) * step, hi)) for s, e in zip(starts, ends)]
+
+
+def _plane_placement(D: np.ndarray, A: float, settings) -> np.ndarray:
+    """The planes ``layers_from_passes`` places for disparities ``D`` (an upper bound:
+    its content is a subset of these values)."""
+    from .mpi import adaptive_planes, plane_spacing, uniform_planes
+
+    if settings.planes == "uniform":
+        return uniform_planes(settings.n_uniform, max(float(D.max()), 1e-9) * (1 + 1e-9))
+    step = plane_spacing(A, settings.tolerance_px)
+    return adaptive_planes(_intervals(D, step), A, settings.tolerance_px)
+
+
+def _fast_len(n: int) -> int:
+    from scipy import fft
+
+    return fft.next_fast_len(int(n), real=True)
+
+
+def _blur_bytes(h: int, w: int, rho: float, H: int, W: int, composite) -> tuple[int, int]:
+    """Working set of blurring one layer whose content box is ``h x w``, and the bytes
+    of its kernel."""
+    r = abs(rho)
+    R = int(math.ceil(r)) + 1
+    oh, ow = min(h + 2 * R, H), min(w + 2 * R, W)
+    if r < 0.5 / 1024:
+        return 16 * oh * ow, 0
+    taps = (2 * R + 1) ** 2
+    if composite.reduce_above is not None and r > composite.reduce_above:
+        s = int(math.ceil(r / composite.reduce_above))
+        Rc = int(math.ceil(r / s)) + 1
+        pad = (Rc + 2) * s
+        ph, pw = oh + 2 * pad, ow + 2 * pad
+        ch, cw = -(-oh // s) + 2 * Rc + 2, -(-ow // s) + 2 * Rc + 2
+        work = (16 * ph * pw + 32 * ph * pw // s
+                + FFT_BYTES_PER_PX * _fast_len(ch) * _fast_len(cw) + 48 * oh * ow)
+        return work, 9 * (2 * Rc + 1) ** 2
+    work = FFT_BYTES_PER_PX * _fast_len(oh + 2 * R) * _fast_len(ow + 2 * R) + 16 * oh * ow
+    return work, 9 * taps
+
+
+def refocus_estimate(disparity: np.ndarray, blur_parameter: float, focus_disparity: float,
+                     preset: str = "default", background: bool = False) -> Estimate:
+    """Estimated peak memory of ``refocus.refocus`` on a disparity map (1/scene-unit,
+    0 = infinitely far) with the blur parameter ``A`` (px per unit disparity), focus
+    ``d_f`` and a preset's settings. Costs a few passes over the disparity."""
+    from .kernels import KERNEL_CACHE_BYTES
+    from .presets import get_preset
+
+    D = np.asarray(disparity, np.float64)
+    H, W = D.shape
+    A = float(blur_parameter)
+    p = get_preset(preset)
+    px = H * W
+    planes = _plane_placement(D, A, p.passes)
+    rho = A * (planes - focus_disparity)
+    largest = float(A * max(abs(float(D.max()) - focus_disparity),
+                            abs(float(D.min()) - focus_disparity)))
+    hs, ws = _plane_boxes(D, planes, A, p.passes.jump_px / A)
+    layers = int(16 * np.sum(hs.astype(np.float64) * ws))
+    blur = kern = 0
+    kernels_total = 0
+    for h, w, r in zip(hs, ws, rho):
+        if h == 0:
+            continue
+        work, kb = _blur_bytes(int(h), int(w), float(r), H, W, p.composite)
+        blur = max(blur, work)
+        kern = max(kern, kb)
+        kernels_total += kb
+    acc = 32 * px if p.subapertures == 1 else 64 * px
+    parts = {
+        "inputs": (INPUT_BYTES_PER_PX + (16 if background else 0)) * px,
+        "layers": layers,
+        "layer building": int((BUILD_BYTES_PER_PX + BUILD_BYTES_PER_EDGE_PX
+                               * _edge_fraction(D, p.passes.jump_px / A)) * px),
+        "blur of one layer": blur + kern,
+        "kernel cache": min(KERNEL_CACHE_BYTES, kernels_total),
+        "accumulators": acc,
+        "writing": WRITE_BYTES_PER_PX * px,
+    }
+    phases = (parts["layer building"] + layers,
+              layers + parts["blur of one layer"] + parts["kernel cache"] + acc,
+              parts["writing"] + 16 * px)
+    return Estimate(f"refocusing {W}x{H} ({preset})", parts, planes=int(len(planes)),
+                    largest_radius_px=largest, peak=parts["inputs"] + max(phases))
+
+
+# --------------------------------------------------------------------------------------
+# Rendering and generating
+
+
+def samples_estimate(aperture: str, spp: int, grid_side: int) -> tuple[int, int]:
+    """``(sample count, bytes while the set is made)`` of a tracer sample set."""
+    if aperture == "grid":
+        n = int(round(math.pi / 4 * grid_side * grid_side)) + 1
+        return n, 40 * int(grid_side) ** 2 + SAMPLE_BYTES * n
+    return int(spp), SAMPLE_BYTES * int(spp)
+
+
+def trace_estimate(width: int, height: int, cards: int, texels: int, samples_bytes: int,
+                   engine: str = "trace", spp: int = 1) -> Estimate:
+    """Estimated peak memory of ``mpib render``: the sample set, the per-pixel
+    accumulators and maps, the textures; for Mitsuba the wavefront of every sample."""
+    px = int(width) * int(height)
+    parts = {
+        "textures": TEXEL_BYTES * int(texels),
+        "per-pixel buffers": (TRACE_BYTES_PER_PX + TRACE_BYTES_PER_PX_CARD * cards) * px,
+    }
+    if engine == "trace":
+        parts["sample set"] = int(samples_bytes)
+        parts["tracer tiles"] = TRACE_TILE_BYTES_PER_CARD * max(cards, 1) * min(1.0, px / (1 << 18))
+    elif engine == "mitsuba":
+        parts["wavefront"] = MITSUBA_BYTES_PER_LANE * px * int(spp)
+    parts = {k: int(v) for k, v in parts.items()}
+    return Estimate(f"rendering {width}x{height} with {engine}", parts)
+
+
+def generate_estimate(width: int, height: int) -> Estimate:
+    """Estimated peak memory of generating a scene of ``width x height``."""
+    return Estimate(f"generating a {width}x{height} scene",
+                    {"textures": GENERATE_BYTES_PER_PX * int(width) * int(height)})
