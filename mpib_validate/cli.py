@@ -40,6 +40,7 @@ def _number(kind, low=None, strict=False, what=None):
     ``strict``)."""
     name = "an integer" if kind is int else "a finite number"
     bound = "" if low is None else f" {'>' if strict else '>='} {low:g}"
+    why = f" ({what})" if what else ""
 
     def parse(text: str):
         try:
@@ -47,10 +48,9 @@ def _number(kind, low=None, strict=False, what=None):
         except ValueError:
             raise argparse.ArgumentTypeError(f"must be {name}{bound}, got {text!r}") from None
         if kind is float and not math.isfinite(v):
-            raise argparse.ArgumentTypeError(f"must be {name}{bound}, got {text!r}")
+            raise argparse.ArgumentTypeError(f"must be {name}{bound}, got {text!r}{why}")
         if low is not None and (v <= low if strict else v < low):
-            raise argparse.ArgumentTypeError(f"must be {name}{bound}, got {text!r}"
-                                             + (f" ({what})" if what else ""))
+            raise argparse.ArgumentTypeError(f"must be {name}{bound}, got {text!r}{why}")
         return v
 
     parse.__name__ = "int" if kind is int else "float"
@@ -137,7 +137,10 @@ def _apply_camera_overrides(scene, args):
         changes["focus_disparity"] = args.focus_disparity
     if args.blur_parameter is not None:
         changes["blur_parameter"] = args.blur_parameter
-    return scene.with_camera(**changes).validate("command line") if changes else scene
+    if not changes:
+        return scene
+    flags = " and ".join(f"--{k.replace('_', '-')}" for k in changes)
+    return scene.with_camera(**changes).validate(f"the command line's {flags}")
 
 
 def _render_estimate(scene, args):
@@ -320,14 +323,19 @@ def cmd_refocus(args) -> int:
         raise CliError(f"no aperture: give --blur-parameter, or --fstop and --focal-mm "
                        f"('{args.input}' holds no camera settings)")
     if not (A > 0) or not math.isfinite(A):
-        raise CliError(f"the blur parameter must be finite and > 0 (a zero aperture has no "
-                       f"defocus), got {A}")
+        where = ("--blur-parameter" if args.blur_parameter is not None else
+                 "--fstop/--focal-mm" if args.fstop is not None else f"'{args.input}' (its header)")
+        raise CliError(f"the blur parameter from {where} must be finite and > 0 (a zero "
+                       f"aperture has no defocus), got {A}")
     if args.focus_disparity is not None:
         d_f = args.focus_disparity
     elif args.focus_depth is not None:
         d_f = 1.0 / args.focus_depth
     elif args.focus_pixel is not None:
-        d_f = focus_from_pixel(passes, *args.focus_pixel, far_limit=args.far_limit)
+        x, y = args.focus_pixel
+        if not (0 <= x < W and 0 <= y < H):
+            raise CliError(f"--focus-pixel {x},{y} is outside the {W}x{H} image")
+        d_f = focus_from_pixel(passes, x, y, far_limit=args.far_limit)
     elif "focus_disparity" in cam:
         d_f = _header_number(cam, "focus_disparity", args.input)
         if d_f < 0:
@@ -383,6 +391,7 @@ def cmd_dataset(args) -> int:
                           {"one sample per worker": one * max(args.workers, 1)})
     budget.check(per, _limit(args))
     ex = make_executor(args.workers, args.scheduler)
+    ex.check()
     bar = _progress_bar(True, "dataset", args.count, "sample")
     t0 = time.perf_counter()
     try:
@@ -513,7 +522,8 @@ def build_parser() -> argparse.ArgumentParser:
     g2.add_argument("--focus-disparity", type=_NON_NEGATIVE, help="focus disparity (1/scene-unit)")
     g2.add_argument("--focus-pixel", type=_parse_pixel, help="focus on pixel X,Y")
     f.add_argument("--blur-parameter", type=float, help="A, pixels per unit disparity")
-    f.add_argument("--fstop", type=float, help="f-number N (with --focal-mm)")
+    f.add_argument("--fstop", type=_number(float, 0, strict=True, what="no aperture, no defocus"),
+                   help="f-number N (with --focal-mm)")
     f.add_argument("--focal-mm", type=_POSITIVE, help="focal length in mm (with --fstop)")
     f.add_argument("--sensor-mm", type=_POSITIVE, default=36.0, help="sensor width in mm (default 36)")
     f.add_argument("--scene-unit-m", type=_POSITIVE, default=1.0,
