@@ -102,17 +102,25 @@ class Estimate:
         if self.planes is not None:
             bits.append(f"about {self.planes} planes")
         if self.largest_radius_px is not None:
-            bits.append(f"largest blur radius {self.largest_radius_px:.1f} px")
+            r = self.largest_radius_px
+            bits.append(f"largest blur radius {r:.1f} px" if r < 1e7 else
+                        f"largest blur radius {r:.3g} px")
         bits.append(f"estimated memory {format_bytes(self.bytes)}")
         return ", ".join(bits)
 
 
 def format_bytes(n: float) -> str:
+    try:
+        n = float(n)
+    except OverflowError:
+        n = math.inf
+    if n >= 1 << 60:
+        return "over a million TiB"
     if n >= 1 << 40:
         return f"{n / (1 << 40):.1f} TiB"
     if n >= 1 << 30:
         return f"{n / GIB:.1f} GB"
-    return f"{n / (1 << 20):.0f} MB"
+    return f"{n / (1 << 20):.0f} MB" if n >= 10 << 20 else f"{n / (1 << 20):.1f} MB"
 
 
 def machine_memory() -> int:
@@ -209,7 +217,8 @@ def _plane_boxes(D: np.ndarray, planes: np.ndarray, A: float, jump: float):
     from scipy import ndimage
 
     near = ndimage.maximum_filter(hi, size=3, mode="nearest")
-    reach = np.where(near - lo > jump, A * (near - lo), 0.0)
+    # (growth past the frame is clipped anyway)
+    reach = np.where(near - lo > jump, np.minimum(A * (near - lo), 2.0 * max(H, W)), 0.0)
     grow = np.zeros(n)
     top = float(reach.max()) if reach.size else 0.0
     level = 1.0
@@ -269,7 +278,12 @@ def _plane_placement(D: np.ndarray, A: float, settings) -> np.ndarray:
     if settings.planes == "uniform":
         return uniform_planes(settings.n_uniform, max(float(D.max()), 1e-9) * (1 + 1e-9))
     step = plane_spacing(A, settings.tolerance_px)
-    return adaptive_planes(_intervals(D, step), A, settings.tolerance_px)
+    intervals = _intervals(D, step)
+    count = sum(1 if hi <= lo else math.ceil(min((hi - lo) / step, 1e300)) + 1
+                for lo, hi in intervals)
+    if count > MAX_PLANES_PLACED:
+        return count
+    return adaptive_planes(intervals, A, settings.tolerance_px)
 
 
 def _fast_len(n: int) -> int:
@@ -278,10 +292,18 @@ def _fast_len(n: int) -> int:
     return fft.next_fast_len(int(n), real=True)
 
 
+#: Radii are capped here for the arithmetic (any such blur is refused anyway).
+_RADIUS_CAP = 1e9
+#: Beyond this many planes their boxes are not estimated one by one: the layers are
+#: counted at their bookkeeping cost per plane, plus every pixel once.
+MAX_PLANES_PLACED = 1_000_000
+PLANE_BYTES = 200
+
+
 def _blur_bytes(h: int, w: int, rho: float, H: int, W: int, composite) -> tuple[int, int]:
     """Working set of blurring one layer whose content box is ``h x w``, and the bytes
     of its kernel."""
-    r = abs(rho)
+    r = min(abs(rho), _RADIUS_CAP)
     R = int(math.ceil(r)) + 1
     oh, ow = min(h + 2 * R, H), min(w + 2 * R, W)
     if r < 0.5 / 1024:
@@ -314,11 +336,18 @@ def refocus_estimate(disparity: np.ndarray, blur_parameter: float, focus_dispari
     p = get_preset(preset)
     px = H * W
     planes = _plane_placement(D, A, p.passes)
-    rho = A * (planes - focus_disparity)
     largest = float(A * max(abs(float(D.max()) - focus_disparity),
                             abs(float(D.min()) - focus_disparity)))
-    hs, ws = _plane_boxes(D, planes, A, p.passes.jump_px / A)
-    layers = int(16 * np.sum(hs.astype(np.float64) * ws))
+    if isinstance(planes, int):  # too many to place: bookkeeping, one full-frame blur
+        n_planes = planes
+        rho = np.array([largest])
+        hs, ws = np.array([H]), np.array([W])
+        layers = PLANE_BYTES * n_planes + 16 * px
+    else:
+        n_planes = len(planes)
+        rho = A * (planes - focus_disparity)
+        hs, ws = _plane_boxes(D, planes, A, p.passes.jump_px / A)
+        layers = int(16 * np.sum(hs.astype(np.float64) * ws)) + PLANE_BYTES * n_planes
     blur = kern = 0
     kernels_total = 0
     for h, w, r in zip(hs, ws, rho):
@@ -342,7 +371,7 @@ def refocus_estimate(disparity: np.ndarray, blur_parameter: float, focus_dispari
     phases = (parts["layer building"] + layers,
               layers + parts["blur of one layer"] + parts["kernel cache"] + acc,
               parts["writing"] + 16 * px)
-    return Estimate(f"refocusing {W}x{H} ({preset})", parts, planes=int(len(planes)),
+    return Estimate(f"refocusing {W}x{H} ({preset})", parts, planes=int(n_planes),
                     largest_radius_px=largest, peak=parts["inputs"] + max(phases))
 
 

@@ -40,6 +40,7 @@ def _number(kind, low=None, strict=False, what=None):
     ``strict``)."""
     name = "an integer" if kind is int else "a finite number"
     bound = "" if low is None else f" {'>' if strict else '>='} {low:g}"
+    why = f" ({what})" if what else ""
 
     def parse(text: str):
         try:
@@ -47,10 +48,9 @@ def _number(kind, low=None, strict=False, what=None):
         except ValueError:
             raise argparse.ArgumentTypeError(f"must be {name}{bound}, got {text!r}") from None
         if kind is float and not math.isfinite(v):
-            raise argparse.ArgumentTypeError(f"must be {name}{bound}, got {text!r}")
+            raise argparse.ArgumentTypeError(f"must be {name}{bound}, got {text!r}{why}")
         if low is not None and (v <= low if strict else v < low):
-            raise argparse.ArgumentTypeError(f"must be {name}{bound}, got {text!r}"
-                                             + (f" ({what})" if what else ""))
+            raise argparse.ArgumentTypeError(f"must be {name}{bound}, got {text!r}{why}")
         return v
 
     parse.__name__ = "int" if kind is int else "float"
@@ -137,7 +137,10 @@ def _apply_camera_overrides(scene, args):
         changes["focus_disparity"] = args.focus_disparity
     if args.blur_parameter is not None:
         changes["blur_parameter"] = args.blur_parameter
-    return scene.with_camera(**changes).validate("command line") if changes else scene
+    if not changes:
+        return scene
+    flags = " and ".join(f"--{k.replace('_', '-')}" for k in changes)
+    return scene.with_camera(**changes).validate(f"the command line's {flags}")
 
 
 def _render_estimate(scene, args):
@@ -285,7 +288,10 @@ def _refocus_camera(args, passes):
              "focus_disparity": args.focus_disparity}
     labels = {}
     if args.focus_pixel is not None:
-        given["focus_disparity"] = focus_from_pixel(passes, *args.focus_pixel, far_limit=args.far_limit)
+        x, y = args.focus_pixel
+        if not (0 <= x < W and 0 <= y < H):
+            raise CliError(f"--focus-pixel {x},{y} is outside the {W}x{H} image")
+        given["focus_disparity"] = focus_from_pixel(passes, x, y, far_limit=args.far_limit)
         labels["focus_disparity"] = "--focus-pixel {},{}".format(*args.focus_pixel)
     return resolve(passes.camera, given, W, H, args.input, labels)
 
@@ -376,6 +382,7 @@ def cmd_dataset(args) -> int:
                           {"one sample per worker": one * max(args.workers, 1)})
     budget.check(per, _limit(args))
     ex = make_executor(args.workers, args.scheduler)
+    ex.check()
     bar = _progress_bar(True, "dataset", args.count, "sample")
     t0 = time.perf_counter()
     try:

@@ -118,14 +118,27 @@ class Executor:
                               processes=True, dashboard_address=None) as cluster, \
                     Client(cluster) as client:
                 return run(client)
+        with self._connect() as client:
+            return run(client)
+
+    def _connect(self):
         try:
-            client = Client(self.scheduler, timeout=CONNECT_TIMEOUT_S)
+            from distributed import Client
+        except ImportError:
+            raise ExecutorError("the Dask executor needs dask[distributed] "
+                                "(pip install 'mpib-validate[dask]')") from None
+        try:
+            return Client(self.scheduler, timeout=CONNECT_TIMEOUT_S)
         except (OSError, TimeoutError, ValueError) as exc:
             raise ExecutorError(f"--scheduler '{self.scheduler}': cannot reach a Dask scheduler "
                                 f"within {CONNECT_TIMEOUT_S:g} s ({type(exc).__name__}); start "
                                 f"one with 'dask scheduler', or use --scheduler local") from None
-        with client:
-            return run(client)
+
+    def check(self) -> None:
+        """Raise :class:`ExecutorError` now if the executor cannot start (an unreachable
+        scheduler), before any output is made."""
+        if self.kind == "dask" and self.scheduler != "local":
+            self._connect().close()
 
 
 def make_executor(workers: int = 0, scheduler: str | None = None) -> Executor:

@@ -1,0 +1,118 @@
+"""The memory estimates of mpib_validate.budget against the peak resident memory of real
+runs, each in a fresh process (the estimate must neither miss a large job nor refuse an
+ordinary one)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from mpib_validate import budget
+
+MEASURE_REFOCUS = r"""
+import json, os, resource, sys
+import numpy as np
+from mpib_validate import budget
+from mpib_validate.passes import depth_to_disparity
+from mpib_validate.refocus import Passes, refocus, write_result
+
+case, n, A, preset, out = sys.argv[1], int(sys.argv[2]), float(sys.argv[3]), sys.argv[4], sys.argv[5]
+rng = np.random.default_rng(0)
+if case == "random":
+    depth = rng.uniform(1, 10, (n, n))
+elif case == "tilted":
+    y = np.arange(n)[:, None] / n
+    depth = np.broadcast_to(1.0 / (0.05 + 0.9 * y), (n, n)).copy()
+    depth[n // 4:n // 2, n // 4:n // 2] = 1.2
+else:
+    depth = np.full((n, n), 20.0)
+    depth[n // 5:n // 2, n // 5:n // 2] = 2.0
+    depth[n // 2:, n // 2:] = 5.0
+colour = rng.random((n, n, 3)).astype(np.float32)
+D = depth_to_disparity(depth)
+df = float(np.median(D))
+est = budget.refocus_estimate(D, A, df, preset)
+rss = lambda: int(open("/proc/self/statm").read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+base = rss()
+res = refocus(Passes(colour, depth, "c", "d"), A, df, preset)
+write_result(out, res)
+peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+print(json.dumps({"estimate": est.bytes - est.parts["inputs"], "used": peak - base,
+                  "planes": res.info["planes"], "planes_estimate": est.planes}))
+"""
+
+
+@pytest.mark.parametrize("case, n, A, preset", [
+    ("random", 512, 30.0, "default"),  # every plane covers the frame; 99 % edge pixels
+    ("tilted", 512, 60.0, "best"),  # a slanted floor: thin planes, 2 x 2 sub-apertures
+    ("cards", 256, 2000.0, "default"),  # three depths, a 900 px blur: one big FFT
+])
+def test_refocus_estimate_tracks_the_measured_peak(tmp_path, case, n, A, preset):
+    """Measured (2 cores): estimate / peak = 0.95, 0.88 and 1.20 for these cases (0.76
+    to 1.55 over the eight calibration runs of 256 to 1024 px, before the constants were
+    fitted). Allocator slack and other processes' pages make the peak noisy: we require
+    0.7 to 1.6."""
+    r = subprocess.run([sys.executable, "-c", MEASURE_REFOCUS, case, str(n), str(A), preset,
+                        str(tmp_path / "out.exr")], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    m = json.loads(r.stdout)
+    assert m["planes_estimate"] == m["planes"]  # exact plane placement below 4 Mpx
+    assert 0.7 < m["estimate"] / m["used"] < 1.6, m
+
+
+def test_layers_dominate_for_random_depth():
+    """46 full-frame planes of float32 RGBA: the reported 11.7 GB peak of a 4096^2 random
+    depth, predicted from the depth alone (here at 1024^2: 46 x 1 Mpx x 16 B)."""
+    rng = np.random.default_rng(0)
+    D = 1.0 / rng.uniform(1, 10, (1024, 1024))
+    est = budget.refocus_estimate(D, 50.0, 0.5)
+    assert est.planes == 46
+    assert est.parts["layers"] == pytest.approx(46 * 1024 * 1024 * 16, rel=0.02)
+    assert est.largest_part() == "layers"
+
+
+def test_binned_intervals_agree_with_the_exact_ones():
+    """Beyond 4 Mpx the content intervals come from bins one plane step wide."""
+    rng = np.random.default_rng(3)
+    D = np.concatenate([np.full(1000, 0.05), rng.uniform(0.3, 0.5, 5000), np.full(10, 0.9)])
+    step = 2 * 0.5 / 40.0
+    from mpib_validate.passes import _content_intervals
+
+    exact = _content_intervals(D, step)
+    old = budget.EXACT_INTERVALS_PX
+    try:
+        budget.EXACT_INTERVALS_PX = 0
+        binned = budget._intervals(D[None, :], step)
+    finally:
+        budget.EXACT_INTERVALS_PX = old
+    assert len(binned) == len(exact) == 3
+    for (a, b), (c, d) in zip(exact, binned):
+        assert c <= a + 1e-12 and d >= b - 1e-12 and d - c <= b - a + step + 1e-12
+
+
+def test_check_names_the_option_and_the_largest_part():
+    est = budget.Estimate("rendering 10x10 with trace", {"sample set": 5 << 30, "textures": 1 << 20})
+    with pytest.raises(budget.BudgetError) as exc:
+        budget.check(est, 1 << 30)
+    msg = str(exc.value)
+    assert "--max-memory-gb" in msg and "largest part: sample set 5.0 GB" in msg
+    assert budget.check(est, 6 << 30) is est
+    assert budget.memory_limit(2.5) == int(2.5 * (1 << 30))
+    assert budget.memory_limit() == int(budget.DEFAULT_FRACTION * budget.machine_memory())
+
+
+def test_sample_set_estimate():
+    """A 2^20-point Sobol set: measured ~150 B per sample while it is made."""
+    code = ("import os, resource; from mpib_validate import samples\n"
+            "rss = int(open('/proc/self/statm').read().split()[1]) * os.sysconf('SC_PAGE_SIZE')\n"
+            "s = samples.stratified(1 << 20)\n"
+            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 - rss)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    used = int(r.stdout)
+    _, est = budget.samples_estimate("sobol", 1 << 20, 0)
+    assert 0.7 < est / used < 1.6, (est, used)
