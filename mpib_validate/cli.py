@@ -393,11 +393,15 @@ def cmd_dataset(args) -> int:
     ex = make_executor(args.workers, args.scheduler)
     ex.check()
     bar = _progress_bar(True, "dataset", args.count, "sample")
+
+    def progress(result):
+        bar.update(1)
+        bar.refresh()  # samples are slow: show each one
+
     t0 = time.perf_counter()
     try:
         summary = build_dataset(args.out, args.count, args.family, args.size, args.spp,
-                                args.start, ex,
-                                progress=(lambda r: bar.update(1)) if bar is not None else None)
+                                args.start, ex, progress=progress if bar is not None else None)
     finally:
         if bar is not None:
             bar.close()
