@@ -151,7 +151,7 @@ def _render_estimate(scene, args):
     budget.check_pixels(cam.width, cam.height, f"the scene's camera ({args.scene})")
     _, sample_bytes = budget.samples_estimate(args.aperture, args.spp, args.grid_side)
     return budget.trace_estimate(cam.width, cam.height, len(scene.cards), texels, sample_bytes,
-                                 args.engine, args.spp)
+                                 args.engine)
 
 
 def cmd_render(args) -> int:
