@@ -25,7 +25,7 @@ Refocusing (:func:`refocus_estimate`) follows what ``passes.layers_from_passes``
 The byte counts per pixel are measured (``tests/test_budget.py`` checks the estimate
 against the peak resident memory of real runs), not derived. Tracing
 (:func:`trace_estimate`) counts the sample set, the per-pixel accumulators and maps,
-and the textures.
+and the textures (Mitsuba and Cycles hold no sample set: they loop over samples).
 """
 
 from __future__ import annotations
@@ -67,10 +67,13 @@ TRACE_BYTES_PER_PX_CARD = 25
 TEXEL_BYTES = 48
 #: One numpy tile of the tracer (2^18 pixels), per card.
 TRACE_TILE_BYTES_PER_CARD = 16 << 20
-#: Mitsuba's JIT variants trace every sample of the frame as one wavefront.
-MITSUBA_BYTES_PER_LANE = 48
+#: Mitsuba and Cycles themselves, beyond the per-pixel buffers (measured: Mitsuba's
+#: llvm_ad_rgb variant peaks ~105-125 MB above its start at 64^2 to 256^2 pixels and
+#: 256 to 512 spp; its samples are not held at once).
+RENDERER_BYTES = 256 << 20
 #: Bytes per pixel of a generated scene (textures of the frame plus margin, for each
-#: of up to four cards, and the generator's float64 noise fields).
+#: of up to four cards, and the generator's float64 noise fields); measured 363 to
+#: 490 B/px at 1024 and 512 px (hard cases with wide margins take the most).
 GENERATE_BYTES_PER_PX = 700
 #: Dr.Jit and the tracer's pixel indices are 32-bit.
 MAX_PIXELS = (1 << 31) - 1
@@ -388,9 +391,9 @@ def samples_estimate(aperture: str, spp: int, grid_side: int) -> tuple[int, int]
 
 
 def trace_estimate(width: int, height: int, cards: int, texels: int, samples_bytes: int,
-                   engine: str = "trace", spp: int = 1) -> Estimate:
+                   engine: str = "trace") -> Estimate:
     """Estimated peak memory of ``mpib render``: the sample set, the per-pixel
-    accumulators and maps, the textures; for Mitsuba the wavefront of every sample."""
+    accumulators and maps, the textures; for Mitsuba and Cycles their own start-up."""
     px = int(width) * int(height)
     parts = {
         "textures": TEXEL_BYTES * int(texels),
@@ -399,8 +402,8 @@ def trace_estimate(width: int, height: int, cards: int, texels: int, samples_byt
     if engine == "trace":
         parts["sample set"] = int(samples_bytes)
         parts["tracer tiles"] = TRACE_TILE_BYTES_PER_CARD * max(cards, 1) * min(1.0, px / (1 << 18))
-    elif engine == "mitsuba":
-        parts["wavefront"] = MITSUBA_BYTES_PER_LANE * px * int(spp)
+    else:
+        parts["renderer"] = RENDERER_BYTES
     parts = {k: int(v) for k, v in parts.items()}
     return Estimate(f"rendering {width}x{height} with {engine}", parts)
 

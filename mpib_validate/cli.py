@@ -151,7 +151,7 @@ def _render_estimate(scene, args):
     budget.check_pixels(cam.width, cam.height, f"the scene's camera ({args.scene})")
     _, sample_bytes = budget.samples_estimate(args.aperture, args.spp, args.grid_side)
     return budget.trace_estimate(cam.width, cam.height, len(scene.cards), texels, sample_bytes,
-                                 args.engine, args.spp)
+                                 args.engine)
 
 
 def cmd_render(args) -> int:
@@ -384,11 +384,15 @@ def cmd_dataset(args) -> int:
     ex = make_executor(args.workers, args.scheduler)
     ex.check()
     bar = _progress_bar(True, "dataset", args.count, "sample")
+
+    def progress(result):
+        bar.update(1)
+        bar.refresh()  # samples are slow: show each one
+
     t0 = time.perf_counter()
     try:
         summary = build_dataset(args.out, args.count, args.family, args.size, args.spp,
-                                args.start, ex,
-                                progress=(lambda r: bar.update(1)) if bar is not None else None)
+                                args.start, ex, progress=progress if bar is not None else None)
     finally:
         if bar is not None:
             bar.close()

@@ -170,14 +170,14 @@ def test_unusable_output_folder_is_one_line(tmp_path, where, message):
     assert message in line
 
 
-def test_unreachable_scheduler_fails_fast():
+def test_unreachable_scheduler_fails_fast(tmp_path):
     """An unreachable --scheduler was an OSError traceback after 30 s."""
     t0 = time.monotonic()
-    line = one_line_error(*run("dataset", "--out", "/tmp/mpib-never-made", "--count", 1,
+    line = one_line_error(*run("dataset", "--out", tmp_path / "never-made", "--count", 1,
                                "--size", "8x8", "--spp", 1, "--scheduler", "tcp://127.0.0.1:9")[::2])
     assert "--scheduler 'tcp://127.0.0.1:9'" in line and "cannot reach" in line
     assert time.monotonic() - t0 < 25  # 5 s connect timeout, plus Dask's start-up
-    assert not Path("/tmp/mpib-never-made").exists()
+    assert not (tmp_path / "never-made").exists()
 
 
 def _on_a_terminal(args, timeout=300) -> tuple[int, str]:
