@@ -471,7 +471,9 @@ def build_parser() -> argparse.ArgumentParser:
                                    "and write a short report.")
     d.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     d.add_argument("--size", type=_POSITIVE_INT, default=256, help="image side in pixels (default 256)")
-    d.add_argument("--spp", type=_POSITIVE_INT, default=1024, help="ray tracer samples per pixel")
+    d.add_argument("--spp", type=_POSITIVE_INT, default=1024,
+                   help="samples per pixel of the ray-traced reference (the Mitsuba, Cycles and "
+                        "exact-MPI renders keep their own fixed counts: 1024, 256 and 1024)")
     d.add_argument("--backend", choices=["auto", "numpy", "llvm", "cuda"], default="auto")
     d.set_defaults(func=cmd_demo)
 
