@@ -133,7 +133,7 @@ def layers_from_layered_passes(groups, blur_parameter: float,
     mpi = mpi_from_sheets(sheets, blur_parameter, settings, H, W)
     if progress is not None:
         progress(1.0)
-    info.planes = len(mpi.layers)
+    info.planes = mpi.plane_count
     info.extra["groups"] = len(groups)
     info.disparity_range = (min(float(np.min(g[2])) for g in groups),
                             max(float(np.max(g[2])) for g in groups))

@@ -39,10 +39,11 @@ class Layer:
     y0: int
     x0: int
     #: ``None``: the layer occludes every farther one (Eq. 1). An integer: additive
-    #: groups, far to near. Group ``2k`` is content exactly on plane ``k``; group
-    #: ``2k + 1`` the two additive shares of content strictly inside the interval
-    #: ``(d_k, d_k+1)`` (see :func:`split_between_planes`). The layers of one group are
-    #: blurred and *summed*; groups are composited with "over", far to near.
+    #: groups (slabs), far to near. Content exactly on plane ``k`` forms one group, the
+    #: two additive shares of content strictly inside the interval ``(d_k, d_k+1)``
+    #: another (see :func:`split_between_planes`), and consecutive groups within a
+    #: disparity span may be merged into one slab (:func:`layers_from_sheets`). The
+    #: layers of one group are blurred and *summed*; groups are composited with "over".
     group: int | None = None
 
     @property
@@ -83,6 +84,12 @@ class MPI:
     @property
     def canvas_shape(self) -> tuple[int, int]:
         return self.height + 2 * self.margin, self.width + 2 * self.margin
+
+    @property
+    def plane_count(self) -> int:
+        """Distinct plane disparities (with additive groups a plane holds up to three
+        layers: its own content and a share of each neighbouring interval)."""
+        return len({l.disparity for l in self.layers})
 
     @property
     def disparities(self) -> np.ndarray:
@@ -336,8 +343,22 @@ class Pixels:
     disparity: np.ndarray
 
 
+def _slab_of_groups(planes, span: float) -> dict:
+    """Slab id of each additive group (``2k``: plane ``k``; ``2k + 1``: the interval
+    ``(d_k, d_k+1)``): consecutive groups merged while the slab's disparity span stays
+    within ``span`` (0: one slab per group)."""
+    n = len(planes)
+    out, slab, start = {}, -1, 0.0
+    for g in range(max(2 * n - 1, 1)):
+        lo, hi = planes[g // 2], planes[min((g + 1) // 2, n - 1)]
+        if slab < 0 or span <= 0 or hi - start > span:
+            slab, start = slab + 1, lo
+        out[g] = slab
+    return out
+
+
 def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
-                       split: str = "linear", snap: float = 0.0) -> MPI:
+                       split: str = "linear", snap: float = 0.0, slab: float = 0.0) -> MPI:
     """Cut sheets (given far to near) into planes and combine them into an MPI.
 
     ``sheets`` holds :class:`Sheet` (dense boxes) or :class:`Pixels` (sparse lists).
@@ -410,10 +431,23 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
     # additive: content exactly on plane k is group 2k; the two shares of content
     # strictly inside the interval (d_k, d_k+1) form group 2k + 1 (the far share on
     # plane k, the near one on plane k + 1); otherwise a plane is one layer
-    roles = ((1,), (0,), (2,)) if split == "additive" else ((0, 1),)
+    # plane; groups within ``slab`` of disparity are merged into one slab at once (each
+    # plane of a slab is then one layer: less memory, one blur)
     group_of = {0: lambda p: 2 * p, 1: lambda p: 2 * p + 1, 2: lambda p: 2 * p - 1}
+    slab_of = _slab_of_groups(planes, slab) if split == "additive" else {}
+
+    def role_sets(p):
+        if split != "additive":
+            return [((0, 1), None)]
+        by_slab: dict = {}
+        for role in (1, 0, 2):
+            g = group_of[role](p)
+            if g in slab_of:
+                by_slab.setdefault(slab_of[g], []).append(role)
+        return [(tuple(r), sl) for sl, r in by_slab.items()]
+
     for p, d_p in enumerate(planes):
-        for role_set in roles:
+        for role_set, slab_id in role_sets(p):
             touched, box = [], None
             for where, a, colour, bounds, boxes, role, cover in shares:  # far to near: "over"
                 if role not in role_set:
@@ -431,7 +465,7 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
                 box = tuple(b) if box is None else (min(box[0], b[0]), max(box[1], b[1]),
                                                     min(box[2], b[2]), max(box[3], b[3]))
             if touched:
-                group = None if split != "additive" else group_of[role_set[0]](p)
+                group = slab_id
                 mpi.add(float(d_p), layer.reshape(hc, wc, K + 1), 0, 0,
                         box=tuple(int(v) for v in box), group=group)
                 for px in touched:

@@ -86,6 +86,11 @@ class PassesSettings:
         split: how a pixel between two planes is shared (:func:`mpi.split_between_planes`):
             ``linear`` (over, with an opaque backing) or ``additive`` (the shares of an
             interval summed by the compositor, see :attr:`mpi.Layer.group`).
+        slab_px: with ``split="additive"``: consecutive groups whose blur radii span at
+            most this many pixels form one slab, summed before "over" (0: each group
+            alone). Fewer seams where one surface crosses groups, and one layer per plane
+            of a slab; two surfaces closer than this are then side by side rather than
+            one in front (an error within a band of that many pixels).
     """
 
     tolerance_px: float = 0.5
@@ -95,6 +100,7 @@ class PassesSettings:
     fill: bool = True
     unmix_edges: bool = True
     split: str = "linear"
+    slab_px: float = 0.0
 
 
 @dataclass
@@ -240,7 +246,8 @@ def mpi_from_sheets(sheets, blur_parameter: float, settings: PassesSettings, hei
     else:
         raise ValueError(f"planes must be 'adaptive' or 'uniform', got {settings.planes!r}")
     return layers_from_sheets(sheets, planes, height, width, 0, split=settings.split,
-                              snap=SNAP_PX / blur_parameter)
+                              snap=SNAP_PX / blur_parameter,
+                              slab=settings.slab_px / blur_parameter)
 
 
 def sheets_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter: float,
@@ -384,6 +391,6 @@ def layers_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
     mpi = mpi_from_sheets(sheets, blur_parameter, settings, *np.shape(disparity))
     if progress is not None:
         progress(1.0)
-    info.planes = len(mpi.layers)
+    info.planes = mpi.plane_count
     info.seconds = time.perf_counter() - t0
     return mpi, info

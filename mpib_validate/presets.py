@@ -30,11 +30,11 @@ class Preset:
 # ``best`` the over split measured better on cards.
 PRESETS = {
     "draft": Preset("draft", "1 px plane tolerance, large blurs at reduced resolution",
-                    PassesSettings(tolerance_px=1.0, split="additive"),
-                    CompositeSettings(reduce_above=8.0, slab_px=2.0)),
+                    PassesSettings(tolerance_px=1.0, split="additive", slab_px=2.0),
+                    CompositeSettings(reduce_above=8.0)),
     "default": Preset("default", "0.5 px plane tolerance, exact kernels (FFT + crop)",
-                      PassesSettings(tolerance_px=0.5, split="additive"),
-                      CompositeSettings(slab_px=2.0)),
+                      PassesSettings(tolerance_px=0.5, split="additive", slab_px=2.0),
+                      CompositeSettings()),
     "best": Preset("best", "0.25 px plane tolerance, middle setting with 2x2 sub-apertures",
                    PassesSettings(tolerance_px=0.25), CompositeSettings(), subapertures=2),
 }
