@@ -27,11 +27,9 @@ def save_render_passes(scene) -> str:
     old = (getattr(s, "media_type", None), s.file_format, s.color_depth)
     path = passes_path(scene)
     try:
-        if hasattr(s, "media_type"):  # Blender 5.0
-            s.media_type = "MULTI_LAYER_IMAGE"
-        else:  # Blender 4.2 - 4.5
-            s.file_format = "OPEN_EXR_MULTILAYER"
-        s.color_depth = "32"
+        from mpib_validate.blender_compat import set_multilayer_exr
+
+        set_multilayer_exr(s, color_depth="32")  # media_type on 5.x, file_format on 4.x
         img.save_render(path, scene=scene)
     finally:
         if old[0] is not None:
