@@ -12,6 +12,7 @@ import tempfile
 
 import bpy
 import numpy as np
+from scene_parts import emitter  # noqa: E402  (this folder: the script's own)
 
 zip_path, work = sys.argv[1], sys.argv[2]
 out = {}
@@ -56,26 +57,7 @@ def cycles_scene(dof: bool, spp: int, depth_pass: bool = True, ortho: bool = Fal
     # square blurs with radius A (1/1.5 - 1/6) = 4.4 px
     for name, z, size, colour, scale in (("wall", -6.0, 8.0, (0.2, 0.8, 0.3), 6.0),
                                         ("card", -1.5, 0.25, (1.0, 0.3, 0.1), 0.0)):
-        bpy.ops.mesh.primitive_plane_add(size=size, location=(0.08 if name == "card" else 0, 0, z))
-        obj = bpy.context.active_object
-        obj.name = name
-        mat = bpy.data.materials.new(name)
-        mat.use_nodes = True
-        nt = mat.node_tree
-        for n in list(nt.nodes):
-            nt.nodes.remove(n)
-        em = nt.nodes.new("ShaderNodeEmission")
-        outn = nt.nodes.new("ShaderNodeOutputMaterial")
-        if scale:
-            chk = nt.nodes.new("ShaderNodeTexChecker")
-            chk.inputs["Scale"].default_value = scale
-            chk.inputs["Color1"].default_value = (*colour, 1)
-            chk.inputs["Color2"].default_value = (0.9, 0.9, 0.9, 1)
-            nt.links.new(chk.outputs["Color"], em.inputs["Color"])
-        else:
-            em.inputs["Color"].default_value = (*colour, 1)
-        nt.links.new(em.outputs["Emission"], outn.inputs["Surface"])
-        obj.data.materials.append(mat)
+        emitter(name, size, (0.08 if name == "card" else 0, 0, z), colour, scale)
     return sc
 
 
