@@ -1,6 +1,6 @@
 """The "MPIB Refocus" compositor node: an operator that generates it and wires it in.
 
-The node is a node group of Blender's built-in nodes (``mpib_validate.nodegroup``), so
+The node is a node group of Blender's built-in nodes (``mpib_validate.blender.nodegroup``), so
 it renders inside the compositor (F12, animation renders, render farms, the GPU
 compositor) and keeps working when the .blend is opened where the extension is not
 installed. This module only adapts Blender to it: where the slices go (the depth of
@@ -85,7 +85,7 @@ class MPIB_OT_add_refocus_node(bpy.types.Operator):
         return True
 
     def execute(self, context):
-        from mpib_validate import nodegroup as ng
+        from mpib_validate.blender import nodegroup as ng
         from mpib_validate.camera import blender_camera
 
         scene = context.scene

@@ -13,9 +13,9 @@ SUFFIX = " (refocused)"
 
 def _errors():
     """The error types that mean bad input (reported, never a traceback)."""
-    from mpib_validate.atomic import OutputError
-    from mpib_validate.exr import ExrError
-    from mpib_validate.passes import PassError
+    from mpib_validate.io.atomic import OutputError
+    from mpib_validate.io.exr import ExrError
+    from mpib_validate.layers.passes import PassError
 
     return (calibrate.CalibrationError, PassError, ExrError, OutputError, ValueError, OSError)
 
@@ -52,9 +52,9 @@ def prepare(context_or_scene, path: str, name: str, frame=None, save=None) -> di
     calibration (at ``frame``, default the current one), the panel's settings and where
     to save (``save``: a path, or ``None`` for the panel's choice). Raises one of
     :func:`_errors`."""
-    from mpib_validate.atomic import refuse_overwrite
-    from mpib_validate.passes import PassError
-    from mpib_validate.exr import image_size
+    from mpib_validate.io.atomic import refuse_overwrite
+    from mpib_validate.layers.passes import PassError
+    from mpib_validate.io.exr import image_size
 
     scene = getattr(context_or_scene, "scene", context_or_scene)
     settings = scene.mpib
@@ -106,7 +106,7 @@ def saved_camera(cam, d_f: float, request: dict) -> dict:
     the ``A``, ``d_f`` used, and where each came from (camera_header's schema)."""
     from dataclasses import replace
 
-    from mpib_validate.camera_header import LENS_FIELDS, ResolvedCamera
+    from mpib_validate.io.camera_header import LENS_FIELDS, ResolvedCamera
 
     lens = {k: request["camera"][k] for k in LENS_FIELDS}
     used = ResolvedCamera(replace(cam, focus_disparity=d_f), lens, request["camera_from"])

@@ -4,7 +4,7 @@ Public API (Mitsuba is imported only when a function needs it)::
 
     render(scene, spp, seed=0, variant=None) -> (image (H, W, 4) float32, meta)
     render_with_variance(scene, spp, seed=0, variant=None) -> (image, sample_variance, meta)
-    render_result(scene, spp, seed=0, variant=None) -> mpib_validate.trace.TraceResult
+    render_result(scene, spp, seed=0, variant=None) -> mpib_validate.cards.trace.TraceResult
     render_stock(scene, spp, seed=0, variant=None) -> (image, meta)   # to_xml files: path + mask
     render_stock_with_variance(scene, spp, seed=0, variant=None) -> (image, sample_variance, meta)
     to_xml(scene, directory, spp=64) -> path of scene.xml               # for the mitsuba CLI
@@ -14,7 +14,7 @@ Public API (Mitsuba is imported only when a function needs it)::
     value_bound(scene) -> (H, W, 4) bound on any sample value (for the agreement floor)
 
 Images are premultiplied linear radiance + coverage, the form of
-:func:`mpib_validate.trace.trace`.
+:func:`mpib_validate.cards.trace.trace`.
 """
 
 from .compare import Agreement, agreement, value_bound

@@ -1,6 +1,6 @@
 """Card scenes to Mitsuba 3 objects, and the front-to-back compositing integrator.
 
-Two Mitsuba renderings of one :class:`~mpib_validate.scene.Scene`:
+Two Mitsuba renderings of one :class:`~mpib_validate.cards.scene.Scene`:
 
 - :func:`build` (used by :func:`mitsuba_scenes.render`): all cards in one mesh, two
   triangles per card, so triangle ``2k`` and ``2k + 1`` belong to card ``k`` and the
@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mpib_validate.scene import Scene
+from mpib_validate.cards.scene import Scene
 
 from . import geometry
 

@@ -41,7 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mpib_validate.scene import Scene
+from mpib_validate.cards.scene import Scene
 
 #: |z| above this marks an outlier.
 Z_OUTLIER = 4.0

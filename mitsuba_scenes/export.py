@@ -29,9 +29,9 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-from mpib_validate.atomic import write_text
-from mpib_validate.exr import write_exr
-from mpib_validate.scene import Scene
+from mpib_validate.io.atomic import write_text
+from mpib_validate.io.exr import write_exr
+from mpib_validate.cards.scene import Scene
 
 from . import build as _build
 from . import geometry

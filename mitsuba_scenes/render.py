@@ -1,8 +1,8 @@
-"""Rendering card scenes with Mitsuba 3: images in the form of ``mpib_validate.trace``.
+"""Rendering card scenes with Mitsuba 3: images in the form of ``mpib_validate.cards.trace``.
 
 Every image is ``(H, W, 4)`` float32: premultiplied linear radiance (RGB, the pixel's
 average over its area and the aperture) and coverage ``1 - T`` (the pixel's average
-opacity), like :func:`mpib_validate.trace.trace`.
+opacity), like :func:`mpib_validate.cards.trace.trace`.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 
-from mpib_validate.scene import Scene
+from mpib_validate.cards.scene import Scene
 
 from . import build as _build
 from . import variants as _variants
@@ -19,7 +19,7 @@ from . import variants as _variants
 
 def _meta(chosen, spp, seed, sampler, integrator, seconds, render_seconds, mi) -> dict:
     """Render metadata; ``backend``, ``samples`` and ``sample_count`` mirror the keys of
-    :func:`mpib_validate.trace.trace`'s metadata."""
+    :func:`mpib_validate.cards.trace.trace`'s metadata."""
     return {"engine": "mitsuba", "mitsuba_version": mi.__version__, "variant": chosen.name,
             "variant_reason": chosen.reason, "llvm_library": chosen.llvm_library,
             "backend": chosen.name, "integrator": integrator, "sampler": sampler,
@@ -170,11 +170,11 @@ def noise_vs_spp(scene: Scene, spp_list, variant: str | None = None, *,
 
 def render_result(scene: Scene, spp: int, seed: int = 0, variant: str | None = None, *,
                   sampler: str = "independent", backend: str = "auto"):
-    """:func:`render` as a :class:`mpib_validate.trace.TraceResult` (for the CLI's EXR
+    """:func:`render` as a :class:`mpib_validate.cards.trace.TraceResult` (for the CLI's EXR
     writer): the bokeh image from Mitsuba; the all-in-focus image and the per-pixel maps
     from the ray tracer's pinhole pass (exact, deterministic), on ``backend``."""
-    from mpib_validate import samples as _samples
-    from mpib_validate import trace as _trace
+    from mpib_validate.cards import samples as _samples
+    from mpib_validate.cards import trace as _trace
 
     bokeh, meta = render(scene, spp, seed, variant, sampler=sampler)
     aif, _ = _trace.trace(scene, _samples.pinhole(4), backend=backend, notices=False)

@@ -258,7 +258,7 @@ EXACT_INTERVALS_PX = 1 << 22
 
 
 def _intervals(D: np.ndarray, step: float) -> list[tuple[float, float]]:
-    from .passes import _content_intervals
+    from mpib_validate.layers.passes import _content_intervals
 
     v = D.ravel()
     if v.size <= EXACT_INTERVALS_PX:
@@ -276,7 +276,7 @@ def _intervals(D: np.ndarray, step: float) -> list[tuple[float, float]]:
 def _plane_placement(D: np.ndarray, A: float, settings) -> np.ndarray:
     """The planes ``layers_from_passes`` places for disparities ``D`` (an upper bound:
     its content is a subset of these values)."""
-    from .mpi import adaptive_planes, plane_spacing, uniform_planes
+    from mpib_validate.layers.mpi import adaptive_planes, plane_spacing, uniform_planes
 
     if settings.planes == "uniform":
         return uniform_planes(settings.n_uniform, max(float(D.max()), 1e-9) * (1 + 1e-9))
@@ -330,8 +330,8 @@ def refocus_estimate(disparity: np.ndarray, blur_parameter: float, focus_dispari
     """Estimated peak memory of ``refocus.refocus`` on a disparity map (1/scene-unit,
     0 = infinitely far) with the blur parameter ``A`` (px per unit disparity), focus
     ``d_f`` and a preset's settings. Costs a few passes over the disparity."""
-    from .kernels import KERNEL_CACHE_BYTES
-    from .presets import get_preset
+    from mpib_validate.compositor.kernels import KERNEL_CACHE_BYTES
+    from mpib_validate.presets import get_preset
 
     D = np.asarray(disparity, np.float64)
     H, W = D.shape

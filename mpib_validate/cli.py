@@ -21,7 +21,7 @@ import math
 import sys
 from pathlib import Path
 
-from . import __version__
+from mpib_validate import __version__
 
 
 class CliError(Exception):
@@ -65,7 +65,7 @@ _NON_NEGATIVE = _number(float, 0)
 
 
 def _limit(args) -> int:
-    from .budget import memory_limit
+    from mpib_validate.budget import memory_limit
 
     return memory_limit(getattr(args, "max_memory_gb", None))
 
@@ -93,7 +93,7 @@ def _parse_size(text: str) -> tuple[int, int]:
 
 
 def _sample_set(args):
-    from . import samples
+    from mpib_validate.cards import samples
 
     if args.aperture == "grid":
         return samples.grid(args.grid_side, pixel=args.pixel)
@@ -104,10 +104,10 @@ def _sample_set(args):
 
 
 def cmd_generate(args) -> int:
-    from . import budget
-    from .atomic import check_outputs
-    from .generate import GeneratorSettings, generate
-    from .scene import save_scene
+    from mpib_validate import budget
+    from mpib_validate.io.atomic import check_outputs
+    from mpib_validate.cards.generate import GeneratorSettings, generate
+    from mpib_validate.cards.scene import save_scene
 
     w, h = args.size
     if args.case == "grazing" and args.family == "constant":
@@ -144,7 +144,7 @@ def _apply_camera_overrides(scene, args):
 
 
 def _render_estimate(scene, args):
-    from . import budget
+    from mpib_validate import budget
 
     cam = scene.camera
     texels = sum(int(c.rgba.shape[0]) * int(c.rgba.shape[1]) for c in scene.cards)
@@ -155,17 +155,17 @@ def _render_estimate(scene, args):
 
 
 def cmd_render(args) -> int:
-    from . import budget
-    from .atomic import check_outputs
-    from .render_io import write_render
-    from .scene import load_scene
-    from .trace import render
+    from mpib_validate import budget
+    from mpib_validate.io.atomic import check_outputs
+    from mpib_validate.io.render_io import write_render
+    from mpib_validate.cards.scene import load_scene
+    from mpib_validate.cards.trace import render
 
     scene = _apply_camera_overrides(load_scene(args.scene), args)
     check_outputs(_outputs(args.output, not args.no_preview), scene.sources)
     budget.check(_render_estimate(scene, args), _limit(args))
     if args.engine == "cycles":
-        from .cycles import render_result
+        from mpib_validate.blender.cycles import render_result
 
         result = render_result(scene, args.spp, seed=args.seed)
     elif args.engine == "mitsuba":
@@ -186,15 +186,15 @@ def cmd_render(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    from .demo import run_demo
+    from mpib_validate.demo import run_demo
 
     run_demo(Path(args.out), size=args.size, spp=args.spp, backend=args.backend)
     return 0
 
 
 def cmd_bench(args) -> int:
-    from .bench import run_bench
-    from .executor import make_executor
+    from mpib_validate.bench import run_bench
+    from mpib_validate.executor import make_executor
 
     run_bench(Path(args.out), suite=args.suite, quick=not args.full,
               executor=make_executor(args.workers, args.scheduler))
@@ -204,7 +204,7 @@ def cmd_bench(args) -> int:
 def _read_mask(path: str, shape):
     import numpy as np
 
-    from .exr import read_exr
+    from mpib_validate.io.exr import read_exr
 
     if path.lower().endswith(".exr"):
         img = read_exr(path)
@@ -225,8 +225,8 @@ def _read_mask(path: str, shape):
 
 
 def cmd_compare(args) -> int:
-    from .metrics import all_metrics
-    from .refocus import read_colour
+    from mpib_validate.metrics import all_metrics
+    from mpib_validate.refocus import read_colour
 
     a = read_colour(args.reference, all_in_focus=False)
     b = read_colour(args.test, all_in_focus=False)
@@ -250,7 +250,7 @@ def cmd_compare(args) -> int:
 
 def _metric_notes(res: dict, shape) -> dict:
     """Why a figure is not a finite number (identical images, images too small)."""
-    from .metrics import SSIM_WINDOW
+    from mpib_validate.metrics import SSIM_WINDOW
 
     notes = {}
     for k, v in res.items():
@@ -276,9 +276,9 @@ def _parse_pixel(text: str) -> tuple[int, int]:
 
 def _refocus_camera(args, passes):
     """The camera of ``mpib refocus``: the input header's, each field overridden by the
-    option that gives it (:func:`mpib_validate.camera_header.resolve`)."""
-    from .camera_header import resolve
-    from .refocus import focus_from_pixel
+    option that gives it (:func:`mpib_validate.io.camera_header.resolve`)."""
+    from mpib_validate.io.camera_header import resolve
+    from mpib_validate.refocus import focus_from_pixel
 
     H, W = passes.depth.shape
     given = {"lens_mm": args.focal_mm, "sensor_width_mm": args.sensor_mm,
@@ -308,10 +308,10 @@ def _progress_bar(enabled: bool, desc: str, total: float, unit: str):
 
 
 def cmd_refocus(args) -> int:
-    from . import budget
-    from .atomic import check_outputs
-    from .passes import depth_to_disparity
-    from .refocus import load_layered_passes, load_passes, read_background, refocus, write_result
+    from mpib_validate import budget
+    from mpib_validate.io.atomic import check_outputs
+    from mpib_validate.layers.passes import depth_to_disparity
+    from mpib_validate.refocus import load_layered_passes, load_passes, read_background, refocus, write_result
 
     inputs = [args.input] + [p for p in (args.depth, args.background) if p]
     check_outputs(_outputs(args.output, not args.no_preview), inputs)
@@ -367,9 +367,9 @@ def cmd_refocus(args) -> int:
 def cmd_dataset(args) -> int:
     import time
 
-    from . import budget
-    from .dataset import build_dataset
-    from .executor import make_executor
+    from mpib_validate import budget
+    from mpib_validate.cards.dataset import build_dataset
+    from mpib_validate.executor import make_executor
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
@@ -402,7 +402,7 @@ def cmd_dataset(args) -> int:
 
 
 def cmd_backends(args) -> int:
-    from . import backend
+    from mpib_validate.compositor import backend
 
     report = {}
     for name in ("numpy", "llvm", "cuda"):
@@ -416,9 +416,9 @@ def cmd_backends(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .camera import SENSOR_FITS
-    from .generate import FAMILIES, HARD_CASES
-    from .presets import PRESETS
+    from mpib_validate.camera import SENSOR_FITS
+    from mpib_validate.cards.generate import FAMILIES, HARD_CASES
+    from mpib_validate.presets import PRESETS
 
     p = _Parser(prog="mpib", description=__doc__.split("\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -481,7 +481,7 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Run a benchmark suite and write a report folder "
                                    "(Markdown + JSON).")
     b.add_argument("--out", default="out/bench", help="report folder (default out/bench)")
-    from .bench import SUITES
+    from mpib_validate.bench import SUITES
 
     b.add_argument("--suite", choices=["all", *SUITES], default="all")
     mode = b.add_mutually_exclusive_group()
@@ -596,11 +596,11 @@ def _join_option_values(argv: list[str]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from .atomic import OutputError
-    from .exr import ExrError
-    from .executor import Terminated, raise_on_sigterm, restore_sigterm
-    from .passes import PassError
-    from .scene import SceneError
+    from mpib_validate.io.atomic import OutputError
+    from mpib_validate.io.exr import ExrError
+    from mpib_validate.executor import Terminated, raise_on_sigterm, restore_sigterm
+    from mpib_validate.layers.passes import PassError
+    from mpib_validate.cards.scene import SceneError
 
     argv = _join_option_values(list(sys.argv[1:] if argv is None else argv))
     args = build_parser().parse_args(argv)

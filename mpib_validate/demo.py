@@ -16,17 +16,18 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__, samples
-from .atomic import write_text
-from .composite import CompositeSettings, composite, render_exact, render_subapertures
-from .evaluate import card_scene_mask, score
-from .exr import channels_from_rgba, write_exr
-from .generate import FAMILIES, GeneratorSettings, generate
-from .mpi import layers_from_cards, uniform_planes
-from .preview import write_png
-from .render_io import write_render
-from .scene import save_scene
-from .trace import render
+from mpib_validate import __version__
+from mpib_validate.cards import samples
+from mpib_validate.io.atomic import write_text
+from mpib_validate.compositor.composite import CompositeSettings, composite, render_exact, render_subapertures
+from mpib_validate.cards.evaluate import card_scene_mask, score
+from mpib_validate.io.exr import channels_from_rgba, write_exr
+from mpib_validate.cards.generate import FAMILIES, GeneratorSettings, generate
+from mpib_validate.layers.mpi import layers_from_cards, uniform_planes
+from mpib_validate.io.preview import write_png
+from mpib_validate.io.render_io import write_render
+from mpib_validate.cards.scene import save_scene
+from mpib_validate.cards.trace import render
 
 DEFAULT_SEED = 0
 
@@ -56,7 +57,7 @@ def _other_references(scene, out: Path, family: str):
         img, meta = mitsuba_scenes.render(scene, 1024, seed=0)
         found.append(("mitsuba-1024spp", img, meta["seconds"]))
     if importlib.util.find_spec("bpy") is not None:
-        from . import cycles
+        from mpib_validate.blender import cycles
 
         img, _, meta = cycles.render(scene, 256, 0, True, depth=False)
         found.append(("cycles-256spp", img, meta["seconds"]))

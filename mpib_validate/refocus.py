@@ -3,12 +3,12 @@
 This is what ``mpib refocus`` and the Blender add-on run. Inputs are EXR files: a
 Blender multilayer file (``ViewLayer.Combined.*`` and ``ViewLayer.Depth.Z``), one of
 this project's renders (``AllInFocus.*`` and ``Depth.Z``), or colour and depth as two
-files. The camera travels in the header (:mod:`mpib_validate.camera_header`).
+files. The camera travels in the header (:mod:`mpib_validate.io.camera_header`).
 
 A layered render (one view layer per depth group, ``mpib_group_<k>.Combined.*`` and
-``mpib_group_<k>.Depth.Z``, see :mod:`mpib_validate.blender_layers`) is read by
+``mpib_group_<k>.Depth.Z``, see :mod:`mpib_validate.blender.layers`) is read by
 :func:`load_layered_passes` and refocused from its group layers
-(:mod:`mpib_validate.layered`): what nearer groups hide is rendered, not filled.
+(:mod:`mpib_validate.layers.layered`): what nearer groups hide is rendered, not filled.
 """
 
 from __future__ import annotations
@@ -22,12 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera_header import HeaderCamera, read_camera
-from .composite import render_subapertures
-from .exr import ExrError, find_pass, read_exr, rgba_from
-from .layered import composite_over, group_disparity, layers_from_layered_passes
-from .passes import DEFAULT_FAR_LIMIT, PassError, depth_to_disparity, layers_from_passes
-from .presets import get_preset
+from mpib_validate.io.camera_header import HeaderCamera, read_camera
+from mpib_validate.compositor.composite import render_subapertures
+from mpib_validate.io.exr import ExrError, find_pass, read_exr, rgba_from
+from mpib_validate.layers.layered import composite_over, group_disparity, layers_from_layered_passes
+from mpib_validate.layers.passes import DEFAULT_FAR_LIMIT, PassError, depth_to_disparity, layers_from_passes
+from mpib_validate.presets import get_preset
 
 
 @dataclass
@@ -131,9 +131,9 @@ def _clamp_negative(colour: np.ndarray, source: str) -> str | None:
 
 def load_passes(path, depth_path=None, view_layer: str | None = None) -> Passes:
     """Read colour and depth, and the camera of the colour file's header (see
-    :mod:`mpib_validate.camera_header`). Raises :class:`PassError`/:class:`ExrError`
+    :mod:`mpib_validate.io.camera_header`). Raises :class:`PassError`/:class:`ExrError`
     naming the file for a missing depth pass, mismatched sizes or NaN/infinite colour,
-    and :class:`~mpib_validate.camera_header.CameraHeaderError` for a malformed camera;
+    and :class:`~mpib_validate.io.camera_header.CameraHeaderError` for a malformed camera;
     negative colour is clamped to 0 with a notice in ``Passes.notices``. ``view_layer``
     picks one of several Blender view layers in the file."""
     img = read_exr(path)
@@ -168,7 +168,7 @@ def load_passes(path, depth_path=None, view_layer: str | None = None) -> Passes:
 
 
 #: View layers named like this (``mpib_group_0`` farthest, see
-#: :mod:`mpib_validate.blender_layers`) are read as a layered input automatically.
+#: :mod:`mpib_validate.blender.layers`) are read as a layered input automatically.
 GROUP_LAYER = re.compile(r"^mpib_group_(\d+)$")
 
 
@@ -332,8 +332,8 @@ def focus_from_pixel(passes: Passes, x: int, y: int, far_limit: float = DEFAULT_
 
 def write_result(path, result: RefocusResult, preview: bool = True) -> list[Path]:
     """EXR (premultiplied RGBA, linear; the settings in the ``mpib`` attribute) and PNG."""
-    from .exr import channels_from_rgba, write_exr
-    from .preview import write_png
+    from mpib_validate.io.exr import channels_from_rgba, write_exr
+    from mpib_validate.io.preview import write_png
 
     path = Path(path)
     img = result.image.copy()

@@ -49,8 +49,8 @@ def session(python, args: dict, env=None) -> dict:
 
 def score_case(res: dict, fstop: float, focus: float) -> dict:
     from mpib_validate.camera import blender_camera
-    from mpib_validate.defocus_node import defocus
-    from mpib_validate.exr import find_pass, read_exr, rgba_from
+    from mpib_validate.compositor.defocus_node import defocus
+    from mpib_validate.io.exr import find_pass, read_exr, rgba_from
     from mpib_validate.metrics import boundaries_from_disparity, occlusion_mask, psnr
     from mpib_validate.refocus import Passes, refocus
 

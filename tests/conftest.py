@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mpib_validate import backend
+from mpib_validate.compositor import backend
 from mpib_validate.camera import Camera
-from mpib_validate.scene import Card, Plane, Scene
+from mpib_validate.cards.scene import Card, Plane, Scene
 
 
 def opaque_card(name, h, w, rgb, plane, offset):

@@ -7,7 +7,7 @@ import math
 import pytest
 
 from mpib_validate.bench import compositor, report
-from mpib_validate.generate import GeneratorSettings, generate
+from mpib_validate.cards.generate import GeneratorSettings, generate
 
 
 @pytest.fixture(scope="module")

@@ -15,8 +15,9 @@ import pytest
 
 pytest.importorskip("bpy")
 
-from mpib_validate import blender_scenes as B  # noqa: E402
-from mpib_validate import cycles, metrics  # noqa: E402
+from mpib_validate.blender import scenes as B
+from mpib_validate.blender import cycles
+from mpib_validate import metrics
 from mpib_validate.bench import blender as BB  # noqa: E402
 
 W, H = 96, 72
@@ -151,7 +152,7 @@ def test_render_suite_writes_the_folder_and_reuses_it(suite):
     # the passes carry the camera as `mpib render` does, so `mpib refocus` needs no lens options
     from mpib_validate.refocus import load_passes
 
-    from mpib_validate.camera_header import resolve
+    from mpib_validate.io.camera_header import resolve
 
     p = load_passes(folder / "passes.exr")
     assert math.isclose(p.camera.image["blur_parameter"], c["blur_parameter"], rel_tol=1e-12)

@@ -17,7 +17,7 @@ MEASURE_REFOCUS = r"""
 import json, os, sys
 import numpy as np
 from mpib_validate import budget
-from mpib_validate.passes import depth_to_disparity
+from mpib_validate.layers.passes import depth_to_disparity
 from mpib_validate.refocus import Passes, refocus, write_result
 
 case, n, A, preset, out = sys.argv[1], int(sys.argv[2]), float(sys.argv[3]), sys.argv[4], sys.argv[5]
@@ -82,7 +82,7 @@ def test_binned_intervals_agree_with_the_exact_ones():
     rng = np.random.default_rng(3)
     D = np.concatenate([np.full(1000, 0.05), rng.uniform(0.3, 0.5, 5000), np.full(10, 0.9)])
     step = 2 * 0.5 / 40.0
-    from mpib_validate.passes import _content_intervals
+    from mpib_validate.layers.passes import _content_intervals
 
     exact = _content_intervals(D, step)
     old = budget.EXACT_INTERVALS_PX
@@ -109,7 +109,7 @@ def test_check_names_the_option_and_the_largest_part():
 
 def test_sample_set_estimate():
     """A 2^20-point Sobol set: measured ~150 B per sample while it is made."""
-    code = ("import os; from mpib_validate import samples\n"
+    code = ("import os; from mpib_validate.cards import samples\n"
             "rss = int(open('/proc/self/statm').read().split()[1]) * os.sysconf('SC_PAGE_SIZE')\n"
             "s = samples.stratified(1 << 20)\n"
             "hwm = next(l for l in open('/proc/self/status') if l.startswith('VmHWM'))\n"

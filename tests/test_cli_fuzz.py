@@ -20,9 +20,9 @@ from clirun import run
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from mpib_validate.exr import ExrError, read_exr, write_exr
-from mpib_validate.generate import GeneratorSettings, generate
-from mpib_validate.scene import save_scene
+from mpib_validate.io.exr import ExrError, read_exr, write_exr
+from mpib_validate.cards.generate import GeneratorSettings, generate
+from mpib_validate.cards.scene import save_scene
 
 FUZZ = settings(max_examples=30, deadline=None, database=None,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
@@ -349,7 +349,7 @@ def test_generate_never_crashes_or_corrupts(case):
         _check(rc, stdout, err, "generate", [out.name], [out / "scene.json"], before, folder,
                replaced=out.relative_to(folder))
         if rc == 0:  # what was written loads back
-            from mpib_validate.scene import load_scene
+            from mpib_validate.cards.scene import load_scene
 
             load_scene(out)
     finally:

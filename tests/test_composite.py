@@ -10,15 +10,15 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from mpib_validate import composite as C
-from mpib_validate import kernels as K
-from mpib_validate import mpi as M
-from mpib_validate import samples, trace
+from mpib_validate.compositor import composite as C
+from mpib_validate.compositor import kernels as K
+from mpib_validate.layers import mpi as M
+from mpib_validate.cards import samples, trace
 from mpib_validate.camera import Camera
-from mpib_validate.composite import PLAIN, CompositeSettings
-from mpib_validate.generate import GeneratorSettings, generate
+from mpib_validate.compositor.composite import PLAIN, CompositeSettings
+from mpib_validate.cards.generate import GeneratorSettings, generate
 from mpib_validate.metrics import psnr
-from mpib_validate.scene import Scene
+from mpib_validate.cards.scene import Scene
 
 from conftest import dot_card
 
@@ -333,7 +333,7 @@ def test_separable_bilinear_equals_map_coordinates():
     (order 1, edges clamped), to float32 rounding, also for points beyond the edges."""
     from scipy import ndimage
 
-    from mpib_validate.composite import _bilinear_separable
+    from mpib_validate.compositor.composite import _bilinear_separable
 
     rng = np.random.default_rng(3)
     a = rng.random((9, 13, 4)).astype(np.float32)

@@ -8,9 +8,9 @@ import os
 import numpy as np
 import pytest
 
-from mpib_validate.dataset import build_dataset, sample_dir
+from mpib_validate.cards.dataset import build_dataset, sample_dir
 from mpib_validate.executor import make_executor
-from mpib_validate.exr import read_exr
+from mpib_validate.io.exr import read_exr
 
 SMALL = dict(family="mixed", size=(32, 24), spp=16)
 

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mpib_validate.generate import FAMILIES, HARD_CASES, GeneratorSettings, generate
-from mpib_validate.scene import save_scene
+from mpib_validate.cards.generate import FAMILIES, HARD_CASES, GeneratorSettings, generate
+from mpib_validate.cards.scene import save_scene
 
 SMALL = GeneratorSettings(width=96, height=72)
 

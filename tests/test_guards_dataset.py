@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from clirun import one_line_error, run
 
-from mpib_validate.dataset import OWNER_FILE, build_dataset, make_sample, sample_dir
+from mpib_validate.cards.dataset import OWNER_FILE, build_dataset, make_sample, sample_dir
 
 SMALL = dict(family="mixed", size=(32, 24), spp=16)
 CMD = [sys.executable, "-m", "mpib_validate.cli"]
@@ -64,7 +64,7 @@ def test_a_live_runs_temporary_folder_is_left_alone(tmp_path):
 def test_a_sample_finished_by_another_run_is_kept(tmp_path):
     """Two runs building the same seed: the one that finishes second keeps the first's
     sample (same seed, same files) instead of failing on the rename or deleting it."""
-    from mpib_validate import dataset
+    from mpib_validate.cards import dataset
 
     out = tmp_path / "ds"
     out.mkdir()
@@ -205,7 +205,7 @@ def _on_a_terminal(args, timeout=300) -> tuple[int, str]:
 
 def test_progress_bars_on_a_terminal(tmp_path):
     """refocus printed nothing for minutes and dataset only its last line."""
-    from mpib_validate.exr import channels_from_rgba, write_exr
+    from mpib_validate.io.exr import channels_from_rgba, write_exr
 
     rgb = np.full((32, 48, 3), 0.5, np.float32)
     depth = np.full((32, 48), 4.0, np.float32)

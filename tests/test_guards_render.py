@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 from clirun import one_line_error, run
 
-from mpib_validate.generate import GeneratorSettings, generate
-from mpib_validate.scene import save_scene
+from mpib_validate.cards.generate import GeneratorSettings, generate
+from mpib_validate.cards.scene import save_scene
 
 README = Path(__file__).resolve().parent.parent / "README.md"
 

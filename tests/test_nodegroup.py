@@ -1,4 +1,4 @@
-"""The MPIB Refocus compositor node group (``mpib_validate.nodegroup``).
+"""The MPIB Refocus compositor node group (``mpib_validate.blender.nodegroup``).
 
 The graph is described once as data; the same description is emitted into Blender and
 evaluated by a numpy model of the nodes. The Blender tests run real bpy (Cycles on the
@@ -23,9 +23,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mpib_validate import nodegroup as ng
+from mpib_validate.blender import nodegroup as ng
 from mpib_validate.camera import blender_camera
-from mpib_validate.mpi import adaptive_planes, plane_spacing, split_between_planes
+from mpib_validate.layers.mpi import adaptive_planes, plane_spacing, split_between_planes
 
 ROOT = Path(__file__).resolve().parent.parent
 SESSION = ROOT / "tests" / "blender" / "nodegroup_session.py"
@@ -117,7 +117,7 @@ def test_soft_edges_give_back_the_pixel_when_nothing_blurs():
 
 
 def test_slice_layers_are_the_mpi_split():
-    """Each slice's alpha is what mpib_validate.mpi.split_between_planes gives the pixel's
+    """Each slice's alpha is what mpib_validate.layers.mpi.split_between_planes gives the pixel's
     (dilated) disparity: the near plane ``u alpha``, the far one
     ``alpha (1 - u) / (1 - u alpha)``."""
     rng = np.random.default_rng(1)
@@ -199,7 +199,7 @@ def _render_args(work: Path, **kw) -> dict:
 
 
 def _passes(path):
-    from mpib_validate.exr import find_pass, read_exr, rgba_from
+    from mpib_validate.io.exr import find_pass, read_exr, rgba_from
 
     img = read_exr(path)
     layer = next(p for p in sorted({n.split(".")[0] for n in img.channels}) if p != "Composite")

@@ -5,14 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mpib_validate import composite as C
-from mpib_validate import evaluate, fill, samples, trace
-from mpib_validate import mpi as M
+from mpib_validate.compositor import composite as C
+from mpib_validate.cards import evaluate, samples, trace
+from mpib_validate.layers import fill
+from mpib_validate.layers import mpi as M
 from mpib_validate.camera import Camera
-from mpib_validate.generate import GeneratorSettings, generate
+from mpib_validate.cards.generate import GeneratorSettings, generate
 from mpib_validate.metrics import psnr
-from mpib_validate.passes import PassError, PassesSettings, depth_to_disparity, layers_from_passes
-from mpib_validate.scene import Card, Plane, Scene
+from mpib_validate.layers.passes import PassError, PassesSettings, depth_to_disparity, layers_from_passes
+from mpib_validate.cards.scene import Card, Plane, Scene
 
 from conftest import opaque_card
 

@@ -10,12 +10,14 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from mpib_validate import baselines, samples, trace
-from mpib_validate.exr import channels_from_rgba, read_exr, rgba_from, write_exr
-from mpib_validate.generate import GeneratorSettings, generate
+from mpib_validate.compositor import baselines
+
+from mpib_validate.cards import samples, trace
+from mpib_validate.io.exr import channels_from_rgba, read_exr, rgba_from, write_exr
+from mpib_validate.cards.generate import GeneratorSettings, generate
 from mpib_validate.metrics import psnr
-from mpib_validate.passes import depth_to_disparity
-from mpib_validate.render_io import write_render
+from mpib_validate.layers.passes import depth_to_disparity
+from mpib_validate.io.render_io import write_render
 
 
 def mpib(*args):
@@ -221,7 +223,7 @@ def test_refocus_with_a_rendered_background_replaces_the_fill(rendered, tmp_path
     closer to the ray tracer at occlusion boundaries. Measured on this scene: PSNR_ob
     34.9 dB with the fill, 45.3 dB with the background; we require a gain of 5 dB (half
     the measured one; the scene and both paths are deterministic)."""
-    from mpib_validate import evaluate
+    from mpib_validate.cards import evaluate
 
     d, scene, res = rendered
     truth, valid, _ = evaluate.hidden_background(scene)

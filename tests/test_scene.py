@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from mpib_validate import samples, trace
+from mpib_validate.cards import samples, trace
 from mpib_validate.camera import Camera, ThinLens
-from mpib_validate.exr import write_exr, channels_from_rgba
-from mpib_validate.generate import generate
-from mpib_validate.scene import Plane, SceneError, load_scene, save_scene
+from mpib_validate.io.exr import write_exr, channels_from_rgba
+from mpib_validate.cards.generate import generate
+from mpib_validate.cards.scene import Plane, SceneError, load_scene, save_scene
 
 
 def test_camera_round_trips_through_the_thin_lens():

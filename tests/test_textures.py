@@ -1,4 +1,4 @@
-"""Tests for mpib_validate.textures: shapes, ranges, determinism, mask properties, HDR spots."""
+"""Tests for mpib_validate.cards.textures: shapes, ranges, determinism, mask properties, HDR spots."""
 
 import socket
 
@@ -7,7 +7,7 @@ import pytest
 from scipy import ndimage
 from skimage import measure
 
-from mpib_validate import textures as T
+from mpib_validate.cards import textures as T
 
 H, W = 72, 96  # non-square on purpose, to catch swapped axes
 SEEDS = (0, 1, 2)

@@ -37,7 +37,7 @@ def run_bench(out: Path, suite: str = "all", quick: bool = True, executor=None) 
         module = importlib.import_module(f"{__name__}.{name}")
         kw = {"executor": executor} if "executor" in inspect.signature(module.run).parameters else {}
         results[name] = module.run(out, quick=quick, **kw)
-    from .report import write_index
+    from mpib_validate.bench.report import write_index
 
     print(f"wrote {write_index(out, results)}")
     return results

@@ -19,7 +19,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from .machine import finish, machine_info
+from mpib_validate.bench.machine import finish, machine_info
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -34,8 +34,8 @@ def _camera_for(A: float, d_f: float, width: int, lens_mm=50.0, sensor_mm=36.0) 
 
 
 def run(out: Path, quick: bool = True) -> dict:
-    from ..presets import PRESETS
-    from .refocus import _hd_input
+    from mpib_validate.presets import PRESETS
+    from mpib_validate.bench.refocus import _hd_input
 
     out.mkdir(parents=True, exist_ok=True)
     result = {"suite": "addon", "quick": quick, "machine": machine_info()}

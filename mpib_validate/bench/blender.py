@@ -1,4 +1,4 @@
-"""Benchmark on ordinary 3D Blender scenes (:mod:`mpib_validate.blender_scenes`).
+"""Benchmark on ordinary 3D Blender scenes (:mod:`mpib_validate.blender.scenes`).
 
 Inputs are what an artist renders with Cycles: the sharp Combined pass and the Z pass
 (``passes.exr``, read by ``refocus.load_passes`` with its camera header, as ``mpib
@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .machine import finish, machine_info, mean_table
+from mpib_validate.bench.machine import finish, machine_info, mean_table
 
 #: Quick mode (``make demo``): 320x240, truth 64 spp x 2 seeds, sharp 32 spp, the
 #: exact MPI renderer at 256 aperture samples (56 dB from its converged image at the
@@ -66,8 +66,8 @@ def boundary_mask(depth: np.ndarray, A: float, d_f: float, window: int = 9) -> n
     """PSNR_ob mask from a Z pass: disparity ``1/Z`` (0 at infinity) jumps of more than
     ``1/A`` (1 px of blur radius) between 4-neighbours, dilated by the largest blur
     radius in the ``window`` neighbourhood (``metrics.occlusion_mask``)."""
-    from .. import metrics
-    from ..passes import depth_to_disparity
+    from mpib_validate import metrics
+    from mpib_validate.layers.passes import depth_to_disparity
 
     D = depth_to_disparity(depth)
     b = metrics.boundaries_from_disparity(D, 1.0 / A)
@@ -87,14 +87,14 @@ def _timed(fn):
 
 def method_images(sc, exact_samples: int = 1024) -> dict:
     """``{method: (rgb (H, W, 3), seconds)}`` for one :class:`SuiteScene`."""
-    from .. import samples
-    from ..blender_scenes import camera, lens
-    from ..composite import render_exact
-    from ..passes import depth_to_disparity, layers_from_passes
-    from ..presets import PRESETS, get_preset
-    from ..refocus import load_passes, refocus
+    from mpib_validate.cards import samples
+    from mpib_validate.blender.scenes import camera, lens
+    from mpib_validate.compositor.composite import render_exact
+    from mpib_validate.layers.passes import depth_to_disparity, layers_from_passes
+    from mpib_validate.presets import PRESETS, get_preset
+    from mpib_validate.refocus import load_passes, refocus
 
-    from ..camera_header import resolve
+    from mpib_validate.io.camera_header import resolve
 
     path = sc.folder / "passes.exr"
     passes = load_passes(path)
@@ -110,7 +110,7 @@ def method_images(sc, exact_samples: int = 1024) -> dict:
     import importlib.util
 
     if importlib.util.find_spec("bpy") is not None:
-        from ..defocus_node import defocus
+        from mpib_validate.compositor.defocus_node import defocus
 
         rgb, seconds = defocus(passes.colour, passes.depth, lens(sc.spec))
         out[NODE] = (rgb, seconds)
@@ -132,12 +132,12 @@ def method_images(sc, exact_samples: int = 1024) -> dict:
 
 
 def node_group(passes, spec, A: float):
-    """The MPIB Refocus compositor node group (:mod:`mpib_validate.nodegroup`) as the
+    """The MPIB Refocus compositor node group (:mod:`mpib_validate.blender.nodegroup`) as the
     extension's operator makes it on 5.x (slices from this render's depth, Inpaint fill,
     Convolve blur), rendered by Blender's compositor on the same passes; its own time
     (the render op of the compositing tree)."""
-    from ..blender_scenes import lens
-    from ..nodegroup import describe, run_on_passes, spec_from_render
+    from mpib_validate.blender.scenes import lens
+    from mpib_validate.blender.nodegroup import describe, run_on_passes, spec_from_render
 
     c = lens(spec)
     graph = describe(spec_from_render(passes.depth, A, blur="convolve"))
@@ -151,8 +151,8 @@ def node_group(passes, spec, A: float):
 
 
 def scene_rows(sc, images: dict) -> list[dict]:
-    from .. import metrics
-    from ..evaluate import score
+    from mpib_validate import metrics
+    from mpib_validate.cards.evaluate import score
 
     m = sc.meta
     mask = boundary_mask(sc.depth, m["A"], m["d_f"])
@@ -176,8 +176,8 @@ def scene_rows(sc, images: dict) -> list[dict]:
 
 def emitter_check(sc, images: dict) -> dict:
     """Radius and energy of each isolated emitter, per method, against Cycles."""
-    from ..blender_scenes import emitter_grid
-    from ..cycles import dot_radii
+    from mpib_validate.blender.scenes import emitter_grid
+    from mpib_validate.blender.cycles import dot_radii
 
     dots, step = emitter_grid(sc.spec)
     centres = [(e["row"], e["col"]) for e in dots]
@@ -235,7 +235,7 @@ def crop_strip(sc, images: dict, truth_name: str = "Cycles depth of field (truth
     where the default preset errs most inside the boundary mask (9x9 mean error)."""
     from scipy import ndimage
 
-    from ..preview import to_uint8
+    from mpib_validate.io.preview import to_uint8
 
     m = sc.meta
     mask = boundary_mask(sc.depth, m["A"], m["d_f"])
@@ -255,7 +255,7 @@ def crop_strip(sc, images: dict, truth_name: str = "Cycles depth of field (truth
 def write_crops(path: Path, strips: list) -> None:
     from PIL import Image, ImageDraw
 
-    from ..atomic import atomic_path
+    from mpib_validate.io.atomic import atomic_path
 
     scale, pad, head = 3, 4, 14
     rows = []
@@ -285,8 +285,8 @@ def write_crops(path: Path, strips: list) -> None:
 def run(out: Path, quick: bool = True, config: dict | None = None) -> dict:
     """The suite; ``config`` (``width``, ``height``, ``spp``, ``sharp_spp``) replaces
     :data:`QUICK` / :data:`FULL` (tests run it tiny)."""
-    from ..blender_scenes import FOCI, SceneSpec, load_scene, render_suite, suite_specs
-    from .report import pareto_plot
+    from mpib_validate.blender.scenes import FOCI, SceneSpec, load_scene, render_suite, suite_specs
+    from mpib_validate.bench.report import pareto_plot
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -335,7 +335,7 @@ def run(out: Path, quick: bool = True, config: dict | None = None) -> dict:
 
 
 def _largest_radius(sc) -> float:
-    from ..passes import depth_to_disparity
+    from mpib_validate.layers.passes import depth_to_disparity
 
     D = depth_to_disparity(sc.depth)
     return float(sc.meta["A"] * np.abs(D - sc.meta["d_f"]).max())

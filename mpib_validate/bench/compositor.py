@@ -24,15 +24,14 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from .machine import (finish, machine_info, mean_table, peak_python_mb, run_worker,
-                      worker_main)
+from mpib_validate.bench.machine import (finish, machine_info, mean_table, peak_python_mb, run_worker, worker_main)
 
 STRIP_ROWS = 48
 
 
 def _methods():
-    from .. import mpi as M
-    from ..composite import PLAIN, CompositeSettings
+    from mpib_validate.layers import mpi as M
+    from mpib_validate.compositor.composite import PLAIN, CompositeSettings
 
     fast = CompositeSettings()
     return {
@@ -67,9 +66,9 @@ def _time(fn, repeats: int):
 
 
 def _scene_rows(scene, label: str, family: str, ref_spp: int, repeats: int) -> list[dict]:
-    from .. import composite as C
-    from .. import samples, trace
-    from ..evaluate import card_scene_mask, score
+    from mpib_validate.compositor import composite as C
+    from mpib_validate.cards import samples, trace
+    from mpib_validate.cards.evaluate import card_scene_mask, score
 
     methods, M = _methods()
     cam = scene.camera
@@ -84,7 +83,7 @@ def _scene_rows(scene, label: str, family: str, ref_spp: int, repeats: int) -> l
     }
     rows = [{"scene": label, "family": family, "method": "reference-noise (two sample sets)",
              "seconds": math.nan, "planes": 0, **noise}]
-    from ..backend import resolve
+    from mpib_validate.compositor.backend import resolve
 
     for name, (planes, kind, settings, extra) in methods.items():
         if settings is not None and settings.backend != "numpy" \
@@ -116,9 +115,9 @@ def _renderer_rows(scene, label, family, ref, mask, spps=(16, 64, 256)) -> list[
     backends), Mitsuba and Cycles at a sweep of sample counts, scored like the methods."""
     import importlib.util
 
-    from .. import samples, trace
-    from ..backend import resolve
-    from ..evaluate import score
+    from mpib_validate.cards import samples, trace
+    from mpib_validate.compositor.backend import resolve
+    from mpib_validate.cards.evaluate import score
 
     rows = []
     engines = [("trace-numpy", None)]
@@ -143,7 +142,7 @@ def _renderer_rows(scene, label, family, ref, mask, spps=(16, 64, 256)) -> list[
                 img, meta = mitsuba_scenes.render(scene, spp, seed=5)
                 seconds = meta["render_seconds"]
             else:
-                from .. import cycles
+                from mpib_validate.blender import cycles
 
                 img, _, meta = cycles.render(scene, spp, 5, True, depth=False)
                 seconds = meta["seconds"]
@@ -158,7 +157,7 @@ def _renderer_rows(scene, label, family, ref, mask, spps=(16, 64, 256)) -> list[
 
 def hd_scene():
     """A generated 'varying' scene at 1920x1080, A set so the largest radius is 60 px."""
-    from ..generate import GeneratorSettings, generate
+    from mpib_validate.cards.generate import GeneratorSettings, generate
 
     scene = generate(0, "varying", settings=GeneratorSettings(width=1920, height=1080))
     lo, hi = scene.disparity_range()
@@ -171,10 +170,10 @@ def _hd_worker(cfg: dict) -> dict:
     """One 1080p measurement. ``prepare`` builds the scene's 32-plane MPI and saves it, so
     that the timed workers hold only the MPI and the compositor (their peak memory is the
     compositor's, not the scene generator's)."""
-    from .. import composite as C
-    from .. import mpi as M
-    from ..composite import CompositeSettings
-    from ..kernels import correlate_direct, soft_disk
+    from mpib_validate.compositor import composite as C
+    from mpib_validate.layers import mpi as M
+    from mpib_validate.compositor.composite import CompositeSettings
+    from mpib_validate.compositor.kernels import correlate_direct, soft_disk
 
     if cfg["what"] == "prepare":
         scene = hd_scene()
@@ -220,7 +219,7 @@ def _run_hd(cfg: dict) -> dict:
 
 def _scene_task(item) -> list[dict]:
     """One scene's rows (a top-level function, so any executor can run it)."""
-    from ..generate import GeneratorSettings, generate
+    from mpib_validate.cards.generate import GeneratorSettings, generate
 
     seed, family, size, ref_spp, repeats = item
     print(f"bench compositor: {family}-{seed} ({size}x{size}) ...", flush=True)
@@ -229,8 +228,8 @@ def _scene_task(item) -> list[dict]:
 
 
 def run(out: Path, quick: bool = True, executor=None) -> dict:
-    from ..executor import make_executor
-    from ..generate import FAMILIES
+    from mpib_validate.executor import make_executor
+    from mpib_validate.cards.generate import FAMILIES
 
     out.mkdir(parents=True, exist_ok=True)
     size = 192 if quick else 512

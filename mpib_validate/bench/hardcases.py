@@ -11,15 +11,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .machine import finish, machine_info
+from mpib_validate.bench.machine import finish, machine_info
 
 METHODS = ("exact-layers (reference)", "preset-default", "mpi-no-fill", "scatter",
            "blender-defocus-node")
 
 
 def _case_task(item) -> list[dict]:
-    from ..generate import GeneratorSettings, generate
-    from .refocus import _scene_rows
+    from mpib_validate.cards.generate import GeneratorSettings, generate
+    from mpib_validate.bench.refocus import _scene_rows
 
     case, family, size, ref_spp = item
     print(f"bench hardcases: {case} ({family}, {size}x{size}) ...", flush=True)
@@ -31,8 +31,8 @@ def _case_task(item) -> list[dict]:
 
 
 def run(out: Path, quick: bool = True, executor=None) -> dict:
-    from ..executor import make_executor
-    from ..generate import HARD_CASES
+    from mpib_validate.executor import make_executor
+    from mpib_validate.cards.generate import HARD_CASES
 
     out.mkdir(parents=True, exist_ok=True)
     size = 128 if quick else 384

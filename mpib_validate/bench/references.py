@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .machine import finish, machine_info
+from mpib_validate.bench.machine import finish, machine_info
 
 
 def _mitsuba_rows(scene, spps, variant):
@@ -21,7 +21,7 @@ def _mitsuba_rows(scene, spps, variant):
 
 
 def _cycles_rows(scene, spps):
-    from .. import cycles
+    from mpib_validate.blender import cycles
 
     return [{"engine": "cycles", "variant": "cpu", "spp": r["spp"], "seconds": r["seconds"],
              "rmse": r["noise_rmse"]} for r in cycles.noise_vs_spp(scene, spps)]
@@ -30,7 +30,7 @@ def _cycles_rows(scene, spps):
 def run(out: Path, quick: bool = True) -> dict:
     import importlib.util
 
-    from ..generate import FAMILIES, GeneratorSettings, generate
+    from mpib_validate.cards.generate import FAMILIES, GeneratorSettings, generate
 
     out.mkdir(parents=True, exist_ok=True)
     sizes = (256,) if quick else (256, 512)

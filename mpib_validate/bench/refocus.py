@@ -18,17 +18,16 @@ import time
 from pathlib import Path
 
 
-from .machine import (finish, machine_info, mean_table, peak_python_mb, run_worker,
-                      worker_main)
+from mpib_validate.bench.machine import (finish, machine_info, mean_table, peak_python_mb, run_worker, worker_main)
 
 
 def _methods(scene, res):
-    from .. import baselines
-    from .. import composite as C
-    from .. import mpi as M
-    from ..evaluate import hidden_background
-    from ..passes import PassesSettings, depth_to_disparity, layers_from_passes
-    from ..presets import PRESETS
+    from mpib_validate.compositor import baselines
+    from mpib_validate.compositor import composite as C
+    from mpib_validate.layers import mpi as M
+    from mpib_validate.cards.evaluate import hidden_background
+    from mpib_validate.layers.passes import PassesSettings, depth_to_disparity, layers_from_passes
+    from mpib_validate.presets import PRESETS
 
     cam = scene.camera
     A, df = cam.blur_parameter, cam.focus_disparity
@@ -64,7 +63,7 @@ def _methods(scene, res):
     import importlib.util
 
     if importlib.util.find_spec("bpy") is not None:
-        from ..defocus_node import defocus
+        from mpib_validate.compositor.defocus_node import defocus
 
         # Blender's Defocus node on the same passes; returns its own time (the node alone)
         methods["blender-defocus-node"] = lambda: defocus(aif, res.depth, cam.cycles_settings())
@@ -72,8 +71,8 @@ def _methods(scene, res):
 
 
 def _scene_rows(scene, label, family, ref_spp, only=None):
-    from .. import samples, trace
-    from ..evaluate import card_scene_mask, score
+    from mpib_validate.cards import samples, trace
+    from mpib_validate.cards.evaluate import card_scene_mask, score
 
     res = trace.render(scene, samples.stratified(ref_spp, seed=11), notices=False)
     mask = card_scene_mask(scene)
@@ -99,7 +98,7 @@ def _scene_rows(scene, label, family, ref_spp, only=None):
 def _hd_worker(cfg) -> dict:
     """Time `mpib refocus` at 1920x1080 on an EXR written beforehand (in-process call of
     the same functions the command runs, EXR read and write included)."""
-    from ..refocus import load_passes, refocus, write_result
+    from mpib_validate.refocus import load_passes, refocus, write_result
 
     t0 = time.perf_counter()
     passes = load_passes(cfg["input"])
@@ -113,9 +112,9 @@ def _hd_worker(cfg) -> dict:
 
 
 def _hd_input(path: Path) -> dict:
-    from .. import samples, trace
-    from ..render_io import write_render
-    from .compositor import hd_scene
+    from mpib_validate.cards import samples, trace
+    from mpib_validate.io.render_io import write_render
+    from mpib_validate.bench.compositor import hd_scene
 
     scene = hd_scene()
     maps_only = trace.render(scene, samples.pinhole(2), notices=False)  # colour + depth only
@@ -126,7 +125,7 @@ def _hd_input(path: Path) -> dict:
 
 def _scene_task(item) -> list[dict]:
     """One scene's rows (a top-level function, so any executor can run it)."""
-    from ..generate import GeneratorSettings, generate
+    from mpib_validate.cards.generate import GeneratorSettings, generate
 
     seed, family, size, ref_spp = item
     print(f"bench refocus: {family}-{seed} ({size}x{size}) ...", flush=True)
@@ -135,9 +134,9 @@ def _scene_task(item) -> list[dict]:
 
 
 def run(out: Path, quick: bool = True, executor=None) -> dict:
-    from ..executor import make_executor
-    from ..generate import FAMILIES
-    from ..presets import PRESETS
+    from mpib_validate.executor import make_executor
+    from mpib_validate.cards.generate import FAMILIES
+    from mpib_validate.presets import PRESETS
 
     out.mkdir(parents=True, exist_ok=True)
     size = 192 if quick else 512

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path, write_text
-from .machine import machine_info
+from mpib_validate.io.atomic import atomic_path, write_text
+from mpib_validate.bench.machine import machine_info
 
 #: Methods drawn in the Pareto plots, with a legend group each.
 GROUPS = (
@@ -131,13 +131,14 @@ def crop_grid(path: Path, size: int = 192, crop: int = 48) -> list[str]:
     colour + depth errs most, each method beside the reference. Returns the methods."""
     from PIL import Image
 
-    from .. import baselines, samples, trace
-    from ..composite import composite
-    from ..evaluate import card_scene_mask
-    from ..generate import FAMILIES, GeneratorSettings, generate
-    from ..mpi import layers_from_cards
-    from ..passes import PassesSettings, depth_to_disparity, layers_from_passes
-    from ..preview import to_uint8
+    from mpib_validate.compositor import baselines
+    from mpib_validate.cards import samples, trace
+    from mpib_validate.compositor.composite import composite
+    from mpib_validate.cards.evaluate import card_scene_mask
+    from mpib_validate.cards.generate import FAMILIES, GeneratorSettings, generate
+    from mpib_validate.layers.mpi import layers_from_cards
+    from mpib_validate.layers.passes import PassesSettings, depth_to_disparity, layers_from_passes
+    from mpib_validate.io.preview import to_uint8
 
     rows, names = [], None
     for family in FAMILIES:
@@ -154,7 +155,7 @@ def crop_grid(path: Path, size: int = 192, crop: int = 48) -> list[str]:
                 "scatter": baselines.scatter(aif, D, A, df),
                 "all in focus (input)": aif}
         try:
-            from ..defocus_node import defocus
+            from mpib_validate.compositor.defocus_node import defocus
 
             imgs["Blender Defocus node"] = defocus(aif, res.depth, cam.cycles_settings(), timing=False)[0]
         except ImportError:
@@ -191,11 +192,11 @@ def photo_figure(path: Path) -> dict:
     from scipy import ndimage
     from skimage import data
 
-    from .. import baselines
-    from ..composite import composite
-    from ..passes import layers_from_passes
-    from ..preview import to_uint8
-    from ..textures import srgb_to_linear
+    from mpib_validate.compositor import baselines
+    from mpib_validate.compositor.composite import composite
+    from mpib_validate.layers.passes import layers_from_passes
+    from mpib_validate.io.preview import to_uint8
+    from mpib_validate.cards.textures import srgb_to_linear
 
     left, _, disp = data.stereo_motorcycle()
     known = np.isfinite(disp)

@@ -12,8 +12,8 @@ import statistics
 import time
 from pathlib import Path
 
-from ..atomic import write_text
-from .machine import machine_info
+from mpib_validate.io.atomic import write_text
+from mpib_validate.bench.machine import machine_info
 
 
 def _time(fn, repeats=3):
@@ -27,7 +27,7 @@ def _time(fn, repeats=3):
 
 
 def _scene(size: int, radius: float):
-    from ..generate import GeneratorSettings, generate
+    from mpib_validate.cards.generate import GeneratorSettings, generate
 
     scene = generate(0, "varying", settings=GeneratorSettings(width=size, height=size))
     lo, hi = scene.disparity_range()
@@ -36,8 +36,8 @@ def _scene(size: int, radius: float):
 
 
 def run(out: Path, quick: bool = True) -> dict:
-    from .. import composite as C
-    from .. import mpi as M
+    from mpib_validate.compositor import composite as C
+    from mpib_validate.layers import mpi as M
 
     out.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -78,7 +78,7 @@ def plot(rows, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..atomic import atomic_path
+    from mpib_validate.io.atomic import atomic_path
 
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.4))
     for ax, axis, label in zip(axes, ("resolution", "radius", "planes"),

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import write_text
-from .machine import machine_info, run_worker, worker_main
+from mpib_validate.io.atomic import write_text
+from mpib_validate.bench.machine import machine_info, run_worker, worker_main
 
 TARGET_SPEEDUP = 20.0
 TARGET_LLVM_SECONDS = 10.0
@@ -27,8 +27,8 @@ TARGET_PEAK_MB = 2048.0
 
 
 def _worker(cfg: dict) -> dict:
-    from .. import samples, trace
-    from ..generate import official_example
+    from mpib_validate.cards import samples, trace
+    from mpib_validate.cards.generate import official_example
 
     scene = official_example(cfg["size"])
     smp = samples.grid(cfg["grid_side"], pixel="centre")
@@ -54,7 +54,7 @@ def _run_worker(cfg: dict) -> dict:
 
 
 def run(out: Path, quick: bool = True) -> dict:
-    from .. import backend
+    from mpib_validate.compositor import backend
 
     out.mkdir(parents=True, exist_ok=True)
     jit = [b for b in ("llvm", "cuda") if backend.resolve(b).name == b]

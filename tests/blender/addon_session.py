@@ -65,7 +65,7 @@ out["probe"] = bpy.app.version_string
 
 
 def read_rgb(path):
-    from mpib_validate.exr import read_exr, rgba_from
+    from mpib_validate.io.exr import read_exr, rgba_from
     from mpib_validate.refocus import _colour_prefix
 
     img = read_exr(path)
@@ -110,7 +110,7 @@ sc = cycles_scene(dof=False, spp=16)
 bpy.ops.render.render(write_still=False)  # the add-on's handler keeps the passes
 out["kept_passes"] = bool(sc.mpib.last_passes and os.path.exists(sc.mpib.last_passes))
 sharp = read_rgb(sc.mpib.last_passes)
-from mpib_validate.exr import find_pass, read_exr  # noqa: E402
+from mpib_validate.io.exr import find_pass, read_exr  # noqa: E402
 
 _passes = read_exr(sc.mpib.last_passes)
 np.save(os.path.join(work, "depth.npy"), _passes.channels[find_pass(_passes, "Depth")])
@@ -162,7 +162,7 @@ for f in (1, 2):
     sib = os.path.join(os.path.dirname(src), os.path.splitext(os.path.basename(src))[0] + "_refocused.exr")
     anim[f] = {"written": os.path.exists(src), "refocused": os.path.exists(sib)}
     if os.path.exists(sib):
-        from mpib_validate.exr import read_exr as _r
+        from mpib_validate.io.exr import read_exr as _r
 
         anim[f]["focus_disparity"] = json.loads(_r(sib).header["mpib"])["focus_disparity"]
 out["animation"] = anim
@@ -194,7 +194,7 @@ def refocus_bad_render(case, **scene):
 
 refocus_bad_render("no_depth_pass", depth_pass=False)
 refocus_bad_render("depth_all_infinite", empty=True)
-from mpib_validate.exr import channels_from_rgba, write_exr  # noqa: E402
+from mpib_validate.io.exr import channels_from_rgba, write_exr  # noqa: E402
 
 nan_path = os.path.join(work, "nan.exr")
 depth = np.full((8, 8), 5.0, np.float32)

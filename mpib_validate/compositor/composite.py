@@ -26,7 +26,7 @@ Fast paths, all optional and each checked against the plain path in the tests:
 
 - ``conv="fft"`` (or ``"auto"``): FFT convolution instead of direct;
 - ``crop=True``: each layer is blurred only over its content box grown by its kernel
-  radius (empty planes are never stored, see :mod:`mpib_validate.mpi`);
+  radius (empty planes are never stored, see :mod:`mpib_validate.layers.mpi`);
 - ``reduce_above=R``: a layer whose radius exceeds ``R`` px is blurred at
   ``1/s`` resolution (``s = ceil(r / R)``, area-averaged down, bilinear up), with the
   disk shrunk so that the blur's second moment is preserved.
@@ -45,8 +45,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import kernels as _k
-from .mpi import MPI, Layer
+from mpib_validate.compositor import kernels as _k
+from mpib_validate.layers.mpi import MPI, Layer
 
 
 @dataclass(frozen=True)
@@ -61,7 +61,7 @@ class CompositeSettings:
         reduce_above: radius (px) above which a layer is blurred at reduced
             resolution; ``None`` = never.
         backend: ``numpy`` (scipy direct/FFT), or ``llvm`` / ``cuda`` for the Dr.Jit
-            gather-based blur (:mod:`mpib_validate.blur_drjit`; ``conv`` is then
+            gather-based blur (:mod:`mpib_validate.compositor.blur_drjit`; ``conv`` is then
             ignored). A Dr.Jit backend that cannot run falls back to numpy with a notice.
         slab_px: for an MPI of additive groups (:attr:`mpi.Layer.group`): consecutive
             groups whose blur radii span at most this many pixels are summed as one
@@ -135,11 +135,11 @@ def _reduced_kernel(rho: float, s: int, settings, cell):
 
 def _correlate(padded: np.ndarray, kernel: np.ndarray, settings: CompositeSettings) -> np.ndarray:
     if settings.backend != "numpy" and kernel.shape != (1, 1):
-        from .backend import notify, resolve
+        from mpib_validate.compositor.backend import notify, resolve
 
         be = resolve(settings.backend)
         if be.name != "numpy":
-            from .blur_drjit import correlate_drjit
+            from mpib_validate.compositor.blur_drjit import correlate_drjit
 
             # the Dr.Jit kernel takes up to 4 channels: extras go in a second call
             parts = [correlate_drjit(padded[..., c:c + 4], kernel, be.name)
@@ -419,9 +419,9 @@ def render_exact(mpi: MPI, camera, samples=None, backend: str = "auto") -> np.nd
     back. Returns ``(H, W, 4)`` in the same form as :func:`composite` (normalised colour
     and coverage).
     """
-    from . import samples as _s
-    from .mpi import mpi_to_scene
-    from .trace import trace
+    from mpib_validate.cards import samples as _s
+    from mpib_validate.layers.mpi import mpi_to_scene
+    from mpib_validate.cards.trace import trace
 
     img, _ = trace(mpi_to_scene(mpi, camera), samples or _s.stratified(1024),
                    backend=backend, notices=False)

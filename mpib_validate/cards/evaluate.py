@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import metrics
-from .scene import Scene
-from .trace import pinhole_maps
+from mpib_validate import metrics
+from mpib_validate.cards.scene import Scene
+from mpib_validate.cards.trace import pinhole_maps
 
 
 def card_scene_mask(scene: Scene, window: int = 9) -> np.ndarray:

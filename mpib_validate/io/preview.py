@@ -6,7 +6,7 @@ import os
 
 import numpy as np
 
-from .atomic import atomic_path
+from mpib_validate.io.atomic import atomic_path
 
 
 def srgb_encode(linear: np.ndarray) -> np.ndarray:

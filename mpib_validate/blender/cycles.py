@@ -3,7 +3,7 @@
 Each card becomes a planar quad whose pinhole projection is exactly its texture
 extent; the texture is looked up through the pinhole projection of the shading point
 (computed in the shader), so tilted cards are mapped projectively, exactly as the ray
-tracer of :mod:`mpib_validate.trace` does (Eq. 15: a hit is looked up where it
+tracer of :mod:`mpib_validate.cards.trace` does (Eq. 15: a hit is looked up where it
 projects through the lens centre). Materials are emission (strength 1, the texel's
 linear colour) mixed with a Transparent BSDF by the texel's alpha, so Cycles'
 front-to-back transparency compositing is the tracer's "over".
@@ -62,8 +62,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .blender_compat import set_multilayer_exr, set_sample_subset
-from .scene import Scene
+from mpib_validate.blender.compat import set_multilayer_exr, set_sample_subset
+from mpib_validate.cards.scene import Scene
 
 #: Depth Cycles writes where no surface is solid (scene units).
 BACKGROUND_DEPTH = 1e10
@@ -423,7 +423,7 @@ def render_exr(bl, path: str | os.PathLike) -> float:
 def read_render(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
     """Read a Cycles multilayer EXR: ``(rgba (H, W, 4) float32 from ViewLayer.Combined,
     depth (H, W) float32 from the Depth pass or None)``."""
-    from .exr import ExrError, find_pass, read_exr, rgba_from
+    from mpib_validate.io.exr import ExrError, find_pass, read_exr, rgba_from
 
     img = read_exr(path)
     rgba = rgba_from(img, "ViewLayer.Combined.").astype(np.float32)
@@ -482,7 +482,7 @@ def render_result(scene: Scene, spp: int, seed: int = 0, threads: int = 0):
     Z = 1e10); ``layer``, ``card_alpha`` and ``card_disparity`` are the scene's exact
     pinhole maps (:func:`trace.pinhole_maps`). ``meta`` carries ``engine``,
     ``backend`` (``cycles-cpu``), ``samples``, ``sample_count``, ``seconds``."""
-    from .trace import TraceResult, pinhole_maps
+    from mpib_validate.cards.trace import TraceResult, pinhole_maps
 
     bokeh, _, meta = render(scene, spp, seed, True, depth=False, threads=threads)
     aif, z, meta_aif = render(scene, 1, seed, False, depth=True, threads=threads)
@@ -597,8 +597,8 @@ def dot_grid_scene(width: int = 96, per_side: int = 6, radius: float = 6.0,
     Returns ``(scene, centres, step)``: the (row, column) of each dot's texel (= its
     in-focus pixel) and the grid step in pixels (each dot owns a ``step`` x ``step``
     window; ``step > 2 radius + 3``)."""
-    from .camera import Camera
-    from .scene import Card, Plane
+    from mpib_validate.camera import Camera
+    from mpib_validate.cards.scene import Card, Plane
 
     step = width // per_side
     if step <= 2 * radius + 3:

@@ -46,15 +46,15 @@ from pathlib import Path
 
 import numpy as np
 
-from . import blender_compat as _compat
-from . import exr as _exr
+from mpib_validate.blender import compat as _compat
+from mpib_validate.io import exr as _exr
 
 #: Blender's default sensor height (mm), used by the AUTO-fit defect.
 DEFAULT_SENSOR_HEIGHT_MM = 24.0
 
 
 def _bpy():
-    from .cycles import _bpy as get
+    from mpib_validate.blender.cycles import _bpy as get
 
     return get()
 
@@ -294,10 +294,10 @@ def measure_defects(size: int = 64, blur_parameter: float = 40.0, focus_disparit
       on the square (ideal 1; the per-pixel renormalisation near the square's edge
       gives energy back there).
     """
-    from . import samples as _samples
-    from . import trace as _trace
-    from .camera import Camera
-    from .scene import Card, Plane, Scene
+    from mpib_validate.cards import samples as _samples
+    from mpib_validate.cards import trace as _trace
+    from mpib_validate.camera import Camera
+    from mpib_validate.cards.scene import Card, Plane, Scene
 
     n = int(size)
     cam = Camera(n, n, blur_parameter, focus_disparity)
@@ -377,13 +377,13 @@ def score_against_tracer(scene, reference: np.ndarray | None = None, ref_samples
                          threads: int = 0) -> dict:
     """Run the node on Cycles' all-in-focus render and Z pass of ``scene`` and score it
     against the ray tracer (``reference`` or ``trace.trace`` with ``ref_samples`` Sobol
-    samples): :func:`mpib_validate.evaluate.score` with the card-scene occlusion mask
+    samples): :func:`mpib_validate.cards.evaluate.score` with the card-scene occlusion mask
     (``psnr``, ``psnr_ob``, ``ssim``, ...), plus ``seconds`` (the node alone) and the
     same scores for the unblurred all-in-focus image (``aif_psnr``, ``aif_psnr_ob``)."""
-    from . import cycles as _cycles
-    from . import evaluate as _evaluate
-    from . import samples as _samples
-    from . import trace as _trace
+    from mpib_validate.blender import cycles as _cycles
+    from mpib_validate.cards import evaluate as _evaluate
+    from mpib_validate.cards import samples as _samples
+    from mpib_validate.cards import trace as _trace
 
     if reference is None:
         reference, _ = _trace.trace(scene, _samples.stratified(ref_samples), notices=False)

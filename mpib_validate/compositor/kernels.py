@@ -35,7 +35,7 @@ import math
 
 import numpy as np
 
-from .samples import concentric_disk
+from mpib_validate.cards.samples import concentric_disk
 
 #: Relative level under which FFT output is rounding noise. The FFT runs in float64
 #: (eps 2.2e-16; its error grows like eps * log2(n), ~5e-15 at n = 2^21 values), so
@@ -235,7 +235,7 @@ def _inside_disk(R: int, r: float) -> np.ndarray:
 
 
 def _concentric_inverse(x: np.ndarray, y: np.ndarray):
-    """Inverse of :func:`mpib_validate.samples.concentric_disk`: unit-disk points to the
+    """Inverse of :func:`mpib_validate.cards.samples.concentric_disk`: unit-disk points to the
     unit square (extended beyond the disk by the same formulas)."""
     s = np.hypot(x, y)
     th = np.arctan2(y, x)

@@ -20,10 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .exr import channels_from_rgba, write_exr
-from .preview import write_png
-from .scene import Scene
-from .trace import TraceResult
+from mpib_validate.io.exr import channels_from_rgba, write_exr
+from mpib_validate.io.preview import write_png
+from mpib_validate.cards.scene import Scene
+from mpib_validate.cards.trace import TraceResult
 
 
 def result_channels(result: TraceResult, scene: Scene) -> dict[str, np.ndarray]:

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .scene import Scene
+from mpib_validate.cards.scene import Scene
 
 
 @dataclass
@@ -480,7 +480,7 @@ def mpi_to_scene(mpi: MPI, camera) -> Scene:
     sample shifts each layer by ``A (d_i - d_f) (mu, nu)`` and composites front to back.
     A plane at disparity 0 (infinitely far) is placed at 1e-9.
     """
-    from .scene import Card, Plane
+    from mpib_validate.cards.scene import Card, Plane
 
     cards = []
     for i, l in enumerate(mpi.layers):
@@ -494,7 +494,7 @@ def mpi_to_scene(mpi: MPI, camera) -> Scene:
 
 def save_mpi(mpi: MPI, path) -> None:
     """Write an MPI to a ``.npz`` file (atomically): sizes, disparities, boxes, layers."""
-    from .atomic import atomic_path
+    from mpib_validate.io.atomic import atomic_path
 
     arrays = {"meta": np.array([mpi.height, mpi.width, mpi.margin, len(mpi.layers)], np.int64)}
     for i, l in enumerate(mpi.layers):

@@ -1,6 +1,6 @@
 """Depth groups as Blender view layers: one view layer per group, the others Indirect Only.
 
-For the layered input of :mod:`mpib_validate.layered`, Cycles renders each depth group
+For the layered input of :mod:`mpib_validate.layers.layered`, Cycles renders each depth group
 in a view layer ``mpib_group_<k>`` (``k = 0`` farthest) in the same F12 render:
 
 - the group's objects are linked into a new collection ``mpib_group_<k>`` (they stay in

@@ -49,8 +49,7 @@ import json
 import math
 from dataclasses import dataclass
 
-from .camera import (DEFAULT_SENSOR_FIT, DEFAULT_SENSOR_HEIGHT_MM, DEFAULT_SENSOR_MM,
-                     SENSOR_FITS, Camera, blender_camera)
+from mpib_validate.camera import (DEFAULT_SENSOR_FIT, DEFAULT_SENSOR_HEIGHT_MM, DEFAULT_SENSOR_MM, SENSOR_FITS, Camera, blender_camera)
 
 ATTRIBUTE = "mpib"
 NOTE_ATTRIBUTE = "Note"

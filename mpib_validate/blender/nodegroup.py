@@ -21,7 +21,7 @@ animate focus and aperture):
    "Sensor Width" is the sensor size across the image width for the camera's fit (the
    drivers of :mod:`blender_addon.nodegroup_ops` compute it for AUTO and VERTICAL fits).
 2. Per pixel ``d = 1/Z`` from the Depth pass and the soft split between neighbouring
-   slices of :func:`mpib_validate.mpi.split_between_planes`: with
+   slices of :func:`mpib_validate.layers.mpi.split_between_planes`: with
    ``u = clamp((d - d_i) / (d_{i+1} - d_i))`` the near slice gets ``u alpha`` and the
    far slice ``alpha (1 - u) / (1 - u alpha)``, so that "over" gives back the pixel's
    alpha and Eq. 16 its disparity. Slice ``i`` is the image times its factor (premultiplied
@@ -48,7 +48,7 @@ animate focus and aperture):
    second output "Alpha" is ``acc_a``, the coverage of Eq. 1.
 
 Slices are placed from the depth of the last render (:func:`place_slices`): the
-adaptive planes of :func:`mpib_validate.mpi.adaptive_planes` (only where content is,
+adaptive planes of :func:`mpib_validate.layers.mpi.adaptive_planes` (only where content is,
 spaced for a blur-radius quantisation error of ``tolerance_px``), with the tolerance
 raised until at most ``max_slices`` remain.
 
@@ -74,9 +74,9 @@ GROUP_NAME = "MPIB Refocus"
 
 # --------------------------------------------------------------------------------------
 # Version-dependent helpers: the compositor tree and its output come from the shared
-# module (mpib_validate.blender_compat: 5.3's compositor effects, 5.0's node group, 4.x's
+# module (mpib_validate.blender.compat: 5.3's compositor effects, 5.0's node group, 4.x's
 # scene.node_tree); the node idnames this graph needs are here.
-from .blender_compat import compositor_tree, tree_output  # noqa: E402,F401
+from mpib_validate.blender.compat import compositor_tree, tree_output  # noqa: E402,F401
 
 
 def is_legacy_api(bpy) -> bool:
@@ -168,14 +168,14 @@ def slices_for_intervals(intervals, blur_parameter: float, tolerance_px: float =
 
     ``intervals``: ``[(lo, hi), ...]``, or a function of the plane step (disparity) that
     returns them (content split where a gap exceeds the step, so that gaps close as the
-    tolerance grows). The planes are :func:`mpib_validate.mpi.adaptive_planes` (only where
+    tolerance grows). The planes are :func:`mpib_validate.layers.mpi.adaptive_planes` (only where
     content is, spaced for a blur-radius quantisation error of at most the tolerance);
     the tolerance is doubled, then refined by bisection to 0.1 %, until at most
     ``max_slices`` remain. If no tolerance gets there (more separate pieces of content
     than slices), the slices are spread evenly over the whole disparity range. Returns
     ``(disparities, tolerance_px_used)``.
     """
-    from .mpi import adaptive_planes, plane_spacing
+    from mpib_validate.layers.mpi import adaptive_planes, plane_spacing
 
     if max_slices < 1:
         raise ValueError(f"max_slices must be >= 1, got {max_slices}")
@@ -213,7 +213,7 @@ def place_slices(depth: np.ndarray, blur_parameter: float, tolerance_px: float =
     """Slice disparities (far to near) for the depth present in a render: the content
     intervals of its disparity ``1/Z`` (gaps wider than one plane step split them; depth
     at or beyond ``far_limit`` is at infinity) through :func:`slices_for_intervals`."""
-    from .passes import DEFAULT_FAR_LIMIT, _content_intervals, depth_to_disparity
+    from mpib_validate.layers.passes import DEFAULT_FAR_LIMIT, _content_intervals, depth_to_disparity
 
     D = depth_to_disparity(depth, DEFAULT_FAR_LIMIT if far_limit is None else far_limit)
     values = np.unique(np.round(D, 12))
@@ -1092,7 +1092,7 @@ def _write_passes(folder, image: np.ndarray, depth: np.ndarray) -> tuple[str, st
     """Two EXR files an Image node reads exactly: the RGBA image, and the depth in R, G, B."""
     import os
 
-    from .exr import channels_from_rgba, write_exr
+    from mpib_validate.io.exr import channels_from_rgba, write_exr
 
     d = np.asarray(depth, np.float32)
     paths = (os.path.join(folder, "image.exr"), os.path.join(folder, "depth.exr"))
@@ -1113,7 +1113,7 @@ def run_on_passes(image: np.ndarray, depth: np.ndarray, graph: Graph, values: di
 
     import bpy
 
-    from .exr import read_exr, rgba_from
+    from mpib_validate.io.exr import read_exr, rgba_from
 
     image = np.asarray(image, np.float32)
     H, W = image.shape[:2]

@@ -104,11 +104,11 @@ def _publish(tmp: Path, final: Path) -> bool:
 
 def make_sample(item: tuple) -> dict:
     """Build one sample: ``item = (out, seed, family, width, height, spp)``."""
-    from . import samples, trace
-    from .atomic import write_text
-    from .generate import GeneratorSettings, generate
-    from .render_io import write_render
-    from .scene import save_scene
+    from mpib_validate.cards import samples, trace
+    from mpib_validate.io.atomic import write_text
+    from mpib_validate.cards.generate import GeneratorSettings, generate
+    from mpib_validate.io.render_io import write_render
+    from mpib_validate.cards.scene import save_scene
 
     out, seed, family, width, height, spp = item
     final = sample_dir(out, seed)
@@ -140,8 +140,8 @@ def build_dataset(out, count: int, family: str = "mixed", size=(256, 256), spp: 
 
     ``progress(result)``, if given, is called as each sample is done (built or skipped).
     """
-    from .atomic import write_text
-    from .executor import make_executor
+    from mpib_validate.io.atomic import write_text
+    from mpib_validate.executor import make_executor
 
     if family not in FAMILIES:
         raise ValueError(f"family must be one of {FAMILIES}, got {family!r}")

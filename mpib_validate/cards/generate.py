@@ -28,9 +28,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import textures as tx
-from .camera import Camera
-from .scene import Card, Plane, Scene, SceneError
+from mpib_validate.cards import textures as tx
+from mpib_validate.camera import Camera
+from mpib_validate.cards.scene import Card, Plane, Scene, SceneError
 
 FAMILIES = ("constant", "varying")
 HARD_CASES = ("thin", "hair", "soft", "hdr", "near-focus", "grazing", "large-blur",
@@ -175,7 +175,7 @@ def _draw(rng, seed, family, case, s: GeneratorSettings) -> Scene:
         fam = "varying" if (case == "grazing" and i == 0) else family
         cards.append(_object_card(rng, f"object{i + 1}", camera, s, fam, float(d_fg[i]),
                                   masks[i], hdr[i + 1], tilts[i]))
-    meta = {"generator": "mpib_validate.generate", "seed": int(seed), "family": family,
+    meta = {"generator": "mpib_validate.cards.generate", "seed": int(seed), "family": family,
             "case": case, "masks": masks, "hdr": hdr}
     return Scene(camera, cards, meta)
 

@@ -1,0 +1,1 @@
+"""Files: OpenEXR reading and writing, atomic outputs, previews, the camera header."""
