@@ -46,6 +46,24 @@ def disparity_jumps(disparity: np.ndarray, threshold: float):
     return np.isfinite(far), far, near
 
 
+def nearer_diagonal(disparity: np.ndarray, threshold: float) -> np.ndarray:
+    """The largest disparity among a pixel's four diagonal neighbours that is nearer
+    than the pixel by more than ``threshold`` (-inf where none is)."""
+    D = np.asarray(disparity, np.float64)
+    near = np.full(D.shape, -np.inf)
+    H, W = D.shape
+    for dy, dx in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+        ys = slice(max(dy, 0), H + min(dy, 0))
+        yd = slice(max(-dy, 0), H + min(-dy, 0))
+        xs = slice(max(dx, 0), W + min(dx, 0))
+        xd = slice(max(-dx, 0), W + min(-dx, 0))
+        nb = D[ys, xs]  # the neighbour at (y + dy, x + dx) of pixel (y, x) = D[yd, xd]
+        own = D[yd, xd]
+        near[yd, xd] = np.where(nb - own > threshold, np.maximum(near[yd, xd], nb),
+                                near[yd, xd])
+    return near
+
+
 def occlusion_region(disparity: np.ndarray, blur_parameter: float, threshold: float,
                      levels: float = 1.5, jumps=None):
     """Pixels on the near side of a disparity jump, within ``A (d_near - d_far)`` of it.

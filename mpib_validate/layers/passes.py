@@ -16,8 +16,10 @@ pixel (Blender's Combined and Depth passes), nothing behind the foreground. The 
    colour, ``(c - (1 - a) c_f) / a`` or ``(c - a c_n) / (1 - a)``, so that the pinhole
    composite is the pixel exactly. No fringe of the wrong colour is then blurred with
    the other layer. A structure one or two pixels wide (a wire, a blade of grass) has no
-   pure pixel; the far-side pixels around it take its nearest own (mixed) pixel as
-   ``c_n``, so that its colour leaves them with it instead of staying sharp.
+   pure pixel; the far-side pixels around it, including those that touch it only at a
+   corner, take its most contrasting own (most covered) pixel within 1.5 px as ``c_n``
+   and may give it up to their whole colour, so that its colour leaves them with it
+   instead of staying sharp or blurring with the background's radius.
 4. The sheets (hidden background, unmixed background parts, visible pixels, unmixed
    foreground parts, far to near) are cut into planes with
    :func:`mpib_validate.layers.mpi.layers_from_sheets`: each pixel is shared between its two
@@ -170,6 +172,38 @@ def _nearest_within(values: np.ndarray, source: np.ndarray, at: np.ndarray, reac
     return out, ok
 
 
+def _strongest_within(values: np.ndarray, source: np.ndarray, at: np.ndarray,
+                      reference: np.ndarray, reach: float = 1.5):
+    """For the flat pixel indices ``at``: the value of the ``source`` pixel no further
+    than ``reach`` px whose mean channel differs most from ``reference`` (one row per
+    index), and whether there is one. For a structure a pixel or two wide, its most
+    covered pixel is the best estimate of its colour: the nearest may be a rim pixel of
+    10 % coverage."""
+    H, W = source.shape
+    R = int(math.floor(reach))
+    y, x = np.divmod(at, W)
+    flat = values.reshape((H * W,) + values.shape[2:])
+    ref = reference[:, :3].mean(axis=-1)
+    best = np.full(at.shape, -1.0)
+    found = np.full(at.shape, -1, np.int64)
+    for dy in range(-R, R + 1):
+        for dx in range(-R, R + 1):
+            if dy * dy + dx * dx > reach * reach:
+                continue
+            yy, xx = y + dy, x + dx
+            inside = (yy >= 0) & (yy < H) & (xx >= 0) & (xx < W)
+            idx = np.where(inside, yy * W + xx, 0)
+            hit = inside & source.ravel()[idx]
+            contrast = np.abs(flat[idx, :3].mean(axis=-1) - ref)
+            better = hit & (contrast > best)
+            best = np.where(better, contrast, best)
+            found = np.where(better, idx, found)
+    ok = found >= 0
+    out = np.zeros((at.size,) + values.shape[2:], values.dtype)
+    out[ok] = flat[found[ok]]
+    return out, ok
+
+
 #: Colours agree (see :func:`known_background_mask`) within this difference of
 #: ``c / (1 + c)`` (0.02 is about 2 % of a mid grey, above render noise of a converged
 #: pass and below the change a shadow or a different surface makes).
@@ -309,6 +343,18 @@ def sheets_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
     unmix = settings.unmix_edges and settings.fill
     farside = np.isfinite(near_next)
     band = (seed | farside) if unmix else np.zeros(D.shape, bool)
+    # A far-side pixel that touches a nearer one only at a corner (the rim of a disk one
+    # or two pixels across, whose anti-aliased ring takes the background's depth) is
+    # unmixed too, but only around structures with no pure pixel of their own within
+    # reach: the corner pixels of a larger object's staircase edge are left as they were
+    # (unmixing those too cost 0.2 dB PSNR_ob on the card scenes).
+    near_corner = _fill.nearer_diagonal(D, thr)
+    corner = (~band & np.isfinite(near_corner)) if unmix else np.zeros(D.shape, bool)
+    if corner.any():
+        ref = np.where(np.isnan(far_field), -np.inf, far_field)
+        ci = np.flatnonzero(corner)
+        _, has_pure = _nearest_within(rgb, ~band & (D > ref + 0.5 * thr), ci, UNMIX_REACH)
+        corner.flat[ci[has_pure]] = False
 
     sheets_far, sheets_near = [], []
     visible = ~band
@@ -316,7 +362,7 @@ def sheets_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
     flat_d = D.ravel()
     if settings.fill and (region.any() or band.any()):
         # background: filled only from pure pixels on the farther side of the edges
-        bg_rgb = _fill.fill_hidden(rgb, D, region, far_field, thr, exclude=band)
+        bg_rgb = _fill.fill_hidden(rgb, D, region, far_field, thr, exclude=band | corner)
         if background is not None:
             use = known_background_mask(rgb, D, far_field, near_next, known_rgb, known,
                                         known_d)
@@ -333,7 +379,7 @@ def sheets_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
         sheets_far.append(Pixels(hidden, flat_bg[hidden], np.ones(hidden.size), hid_d))
         if band.any():
             # everything below is evaluated on the edge pixels only
-            bi = np.flatnonzero(band)
+            bi = np.flatnonzero(band | corner)
             on_near = seed.ravel()[bi]
             ref = np.where(np.isnan(far_field), -np.inf, far_field)
             near_side = D > ref + 0.5 * thr
@@ -342,20 +388,24 @@ def sheets_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
             near_c, near_ok = _nearest_within(rgb, visible & near_side, bi, UNMIX_REACH)
             # a structure one or two pixels wide has no pure pixel: its own (mixed) pixels
             # are the best estimate of its colour for the far-side pixels around it
-            thin_c, thin_ok = _nearest_within(rgb, seed, bi, UNMIX_REACH)
+            far_own, far_ok = _nearest_within(rgb, visible & ~near_side & ~corner, bi,
+                                              UNMIX_REACH)
+            thin_c, thin_ok = _strongest_within(rgb, seed, bi, far_own)
             use_thin = ~near_ok & thin_ok & ~on_near
             near_c = np.where(use_thin[:, None], thin_c, near_c)
             near_ok = near_ok | use_thin
-            far_own, far_ok = _nearest_within(rgb, visible & ~near_side, bi, UNMIX_REACH)
             c = flat_rgb[bi]
             far_c = np.where(on_near[:, None], flat_bg[bi], far_own)
             local = near_ok & (on_near | far_ok)
-            near_d = np.where(on_near, flat_d[bi], near_next.ravel()[bi])
+            near_d = np.where(on_near, flat_d[bi],
+                              np.where(corner.ravel()[bi], near_corner.ravel()[bi],
+                                       near_next.ravel()[bi]))
             a, explained = _unmix(c, near_c, far_c)
             # The depth says which side the pixel centre is on: keep a >= 1/4 on the near
             # side and <= 3/4 on the far side; a pixel the two colours do not explain is
             # left whole at its own depth.
-            a = np.where(on_near, np.clip(a, 0.25, 1.0), np.clip(a, 0.0, 0.75))
+            a = np.where(on_near, np.clip(a, 0.25, 1.0),
+                         np.clip(a, 0.0, np.where(use_thin, 1.0, 0.75)))
             a = np.where(explained & local, a, np.where(on_near, 1.0, 0.0))
             # the side the depth names takes the rest of the colour, so that the pinhole
             # composite is the pixel's own colour
@@ -363,7 +413,7 @@ def sheets_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
             near_c = np.where(on_near[:, None],
                               np.maximum((c - (1.0 - a3) * far_c) / np.maximum(a3, 1e-6), 0.0),
                               near_c)
-            far_c = np.where(~on_near[:, None],
+            far_c = np.where(~on_near[:, None] & (a3 < 0.999),
                              np.maximum((c - a3 * near_c) / np.maximum(1.0 - a3, 1e-6), 0.0),
                              far_c)
             off = ~on_near  # far-side pixels keep their own (far) depth
@@ -371,7 +421,8 @@ def sheets_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
                                      flat_d[bi[off]]))
             sheets_near.append(Pixels(bi, near_c, a, near_d))
             info.edge_fraction = float(bi.size / D.size)
-    sheets = sheets_far + [Sheet((0, 0), rgb, visible.astype(np.float64), D)] + sheets_near
+    shown = visible & ~corner if band.any() else visible
+    sheets = sheets_far + [Sheet((0, 0), rgb, shown.astype(np.float64), D)] + sheets_near
     step_done(0.6)
     info.fill_fraction = float(region.mean())
     info.seconds = time.perf_counter() - t0
