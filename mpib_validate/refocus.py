@@ -47,6 +47,17 @@ class Passes:
     #: nearest covering group's depth), for focusing and display
     groups: list | None = None
     notices: list = field(default_factory=list)  # one line each, e.g. clamped negatives
+    #: ``(H, W)`` disparity given directly (a photograph's disparity map, 0 = infinitely
+    #: far), used instead of ``1/depth``; ``depth`` then holds ``1/disparity`` for display
+    disparity: np.ndarray | None = None
+
+
+def passes_disparity(passes: Passes, far_limit: float = DEFAULT_FAR_LIMIT) -> np.ndarray:
+    """The disparity of the passes: the one given (:attr:`Passes.disparity`), else
+    :func:`~mpib_validate.layers.passes.depth_to_disparity` of the depth."""
+    if passes.disparity is not None:
+        return np.asarray(passes.disparity, np.float64)
+    return depth_to_disparity(passes.depth, far_limit, source=passes.depth_source)
 
 
 def view_layers(img) -> list[str]:
@@ -273,7 +284,7 @@ def refocus(passes: Passes, blur_parameter: float, focus_disparity: float,
         raise PassError(f"the focus disparity must be finite and >= 0, got {focus_disparity}")
     p = get_preset(preset)
     t0 = time.perf_counter()
-    D = depth_to_disparity(passes.depth, far_limit, source=passes.depth_source)
+    D = passes_disparity(passes, far_limit)
     first = second = None
     if progress is not None:
         first = lambda f: progress(0.5 * f)  # noqa: E731
@@ -326,7 +337,7 @@ def focus_from_pixel(passes: Passes, x: int, y: int, far_limit: float = DEFAULT_
     H, W = passes.depth.shape
     if not (0 <= x < W and 0 <= y < H):
         raise PassError(f"focus pixel ({x}, {y}) is outside the {W}x{H} image")
-    D = depth_to_disparity(passes.depth, far_limit, source=passes.depth_source)
+    D = passes_disparity(passes, far_limit)
     return float(np.median(D[max(0, y - 1):y + 2, max(0, x - 1):x + 2]))
 
 
