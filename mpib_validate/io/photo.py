@@ -62,8 +62,10 @@ def linear_to_srgb(c: np.ndarray) -> np.ndarray:
     ``1.055 c ** (1 / 2.4) - 0.055`` (IEC 61966-2-1), on ``c`` clipped to [0, 1] (what
     an encoded file can hold; NaN becomes 0)."""
     c = np.clip(np.nan_to_num(np.asarray(c, np.float64)), 0.0, 1.0)
-    return np.where(c <= SRGB_KNEE_LINEAR, 12.92 * c,
-                    1.055 * np.power(c, 1.0 / 2.4) - 0.055)
+    p = np.power(c, 1.0 / 2.4)
+    # 1.055 p - 0.055 written as p + 0.055 (p - 1): the same in exact arithmetic, and
+    # exactly 1 at c = 1 in floating point (1.055 - 0.055 rounds to 1 - 1.1e-16)
+    return np.where(c <= SRGB_KNEE_LINEAR, 12.92 * c, p + 0.055 * (p - 1.0))
 
 
 @dataclass(frozen=True)
@@ -374,7 +376,7 @@ def write_photo(path, rgb: np.ndarray, alpha: np.ndarray | None, encoding: Encod
         else:
             from PIL import Image
 
-            im = Image.fromarray(pixels, "RGBA" if pixels.shape[2] == 4 else "RGB")
+            im = Image.fromarray(pixels)  # uint8 (H, W, 3|4): RGB or RGBA
             if fmt == "JPEG":
                 im.save(tmp, format="JPEG", quality=JPEG_QUALITY, subsampling=0)
             else:
