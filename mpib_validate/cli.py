@@ -428,12 +428,18 @@ def _refocus_photo(args) -> int:
         raise CliError("--disp-focus is the paper's focus on the [0, 1] disparity: use it "
                        "with --K (else --focus-disparity)")
     depth = np.divide(1.0, D, out=np.full(D.shape, np.inf), where=D > 0)
-    passes = Passes(photo.rgb.astype(np.float32), depth, f"{args.input} ({photo.format}, "
+    # the passes' colour is premultiplied by the film alpha (a photograph's is straight)
+    colour = photo.rgb if photo.alpha is None else photo.rgb * photo.alpha[..., None]
+    passes = Passes(colour.astype(np.float32), depth, f"{args.input} ({photo.format}, "
                     f"{photo.encoding.describe()})", dsrc, None,
                     None if photo.alpha is None else photo.alpha.astype(np.float32),
                     disparity=D)
     if args.K is not None:
-        focus = args.disp_focus
+        if args.focus_depth is not None:
+            raise CliError("--focus-depth is a distance, which a normalised disparity map has "
+                           "no scale for: give --disp-focus (in [0, 1]) or --focus-pixel X,Y")
+        # on a normalised map --focus-disparity is the same number as --disp-focus
+        focus = args.disp_focus if args.disp_focus is not None else args.focus_disparity
         if args.focus_pixel is not None:
             x, y = args.focus_pixel
             if not (0 <= x < W and 0 <= y < H):
@@ -443,7 +449,8 @@ def _refocus_photo(args) -> int:
             raise CliError("no focus: give --disp-focus (in [0, 1]) or --focus-pixel X,Y")
         A, d_f = from_paper(args.K, focus)
         sources = {"blur_parameter": "--K", "focus_disparity": "--focus-pixel {},{}".format(
-            *args.focus_pixel) if args.focus_pixel else "--disp-focus"}
+            *args.focus_pixel) if args.focus_pixel else (
+            "--disp-focus" if args.disp_focus is not None else "--focus-disparity")}
         camera_info = {"K": A, "disp_focus": d_f, "from": sources}
     else:
         used = _refocus_camera(args, passes)
