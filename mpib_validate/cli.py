@@ -330,6 +330,33 @@ example: mpib refocus photo.jpg --disparity disp.png --K 60 --disp-focus 0.81 -o
 """
 
 
+def _plan_and_refocus(args, passes, A: float, d_f: float, D, background=None):
+    """Estimate the memory from the disparity ``D`` (refused past --max-memory-gb),
+    print the plan, and refocus with a progress bar on a terminal."""
+    from mpib_validate import budget
+    from mpib_validate.refocus import refocus
+
+    H, W = D.shape
+    est = budget.refocus_estimate(D, A, d_f, args.preset, background=background is not None)
+    budget.check(est, _limit(args))
+    print(f"refocusing {W}x{H} ({args.preset}): {est.describe()}", flush=True)
+    bar = _progress_bar(not args.quiet, "refocus", 100, "%")
+
+    def progress(fraction):
+        if bar is not None:
+            bar.update(max(0, int(round(100 * fraction)) - bar.n))
+
+    try:
+        result = refocus(passes, A, d_f, args.preset, args.far_limit, background=background,
+                         progress=progress)
+        if bar is not None:
+            bar.refresh()
+    finally:
+        if bar is not None:
+            bar.close()
+    return result
+
+
 _PHOTO_ONLY = ("disparity", "K", "disp_focus", "gamma", "encoding", "exr", "official_focus_range")
 
 
@@ -375,12 +402,11 @@ def _refocus_photo(args) -> int:
     the input's encoding (see :mod:`mpib_validate.io.photo`)."""
     import numpy as np
 
-    from mpib_validate import budget
     from mpib_validate.camera import OFFICIAL_BINS, from_paper, widen_focus
     from mpib_validate.io.atomic import check_outputs
     from mpib_validate.io.photo import image_format, output_bits, read_disparity, read_photo, write_photo
     from mpib_validate.layers.passes import depth_to_disparity
-    from mpib_validate.refocus import Passes, _depth_channel, focus_from_pixel, refocus, write_result
+    from mpib_validate.refocus import Passes, _depth_channel, focus_from_pixel, write_result
     from mpib_validate.io.exr import read_exr
 
     for opt, given in (("--layered", args.layered), ("--background", args.background),
@@ -461,20 +487,7 @@ def _refocus_photo(args) -> int:
             raise CliError("--official-focus-range widens the focus by half of the official "
                            "renderer's 1/32 bins of the [0, 1] disparity: use it with --K")
         passes.disparity = widen_focus(D, d_f, 0.5 / OFFICIAL_BINS)
-    est = budget.refocus_estimate(passes.disparity, A, d_f, args.preset, background=False)
-    budget.check(est, _limit(args))
-    print(f"refocusing {W}x{H} ({args.preset}): {est.describe()}", flush=True)
-    bar = _progress_bar(not args.quiet, "refocus", 100, "%")
-
-    def progress(fraction):
-        if bar is not None:
-            bar.update(max(0, int(round(100 * fraction)) - bar.n))
-
-    try:
-        result = refocus(passes, A, d_f, args.preset, args.far_limit, progress=progress)
-    finally:
-        if bar is not None:
-            bar.close()
+    result = _plan_and_refocus(args, passes, A, d_f, passes.disparity)
     result.info["camera"] = camera_info
     result.info["encoding"] = photo.encoding.describe()
     img = result.image
@@ -513,10 +526,9 @@ def _default_output_encoding():
 
 
 def cmd_refocus(args) -> int:
-    from mpib_validate import budget
     from mpib_validate.io.atomic import check_outputs
     from mpib_validate.layers.passes import depth_to_disparity
-    from mpib_validate.refocus import load_layered_passes, load_passes, read_background, refocus, write_result
+    from mpib_validate.refocus import load_layered_passes, load_passes, read_background, write_result
 
     if _photo_input(args):
         return _refocus_photo(args)
@@ -546,23 +558,7 @@ def cmd_refocus(args) -> int:
     A, d_f = used.camera.blur_parameter, used.camera.focus_disparity
     background = read_background(args.background, (H, W)) if args.background else None
     D = depth_to_disparity(passes.depth, args.far_limit, source=passes.depth_source)
-    est = budget.refocus_estimate(D, A, d_f, args.preset, background=background is not None)
-    budget.check(est, _limit(args))
-    print(f"refocusing {W}x{H} ({args.preset}): {est.describe()}", flush=True)
-    bar = _progress_bar(not args.quiet, "refocus", 100, "%")
-
-    def progress(fraction):
-        if bar is not None:
-            bar.update(max(0, int(round(100 * fraction)) - bar.n))
-
-    try:
-        result = refocus(passes, A, d_f, args.preset, args.far_limit, background=background,
-                         progress=progress)
-        if bar is not None:
-            bar.refresh()
-    finally:
-        if bar is not None:
-            bar.close()
+    result = _plan_and_refocus(args, passes, A, d_f, D, background)
     result.info["camera"] = used.header()  # which camera fields were used, and from where
     written = write_result(args.output, result, preview=not args.no_preview)
     i = result.info
