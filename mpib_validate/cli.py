@@ -502,7 +502,8 @@ def _refocus_photo(args) -> int:
         # a linear input written to an integer file is encoded as sRGB unless told
         enc = photo.encoding if photo.encoding.name != "linear" else (
             _photo_encoding(args) or _default_output_encoding())
-        write_photo(args.output, img[..., :3], alpha, enc, output_bits(photo, args.output))
+        write_photo(args.output, img[..., :3], alpha, enc, output_bits(photo, args.output),
+                    photo.icc_profile)
         written.append(Path(args.output))
     if args.exr:
         written += write_result(args.exr, result, preview=False)

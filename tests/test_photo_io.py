@@ -471,3 +471,35 @@ def test_transparent_png_keeps_its_alpha(tmp_path):
     with Image.open(tmp_path / "o.png") as im:
         assert im.mode == "RGBA"
         assert np.array_equal(np.asarray(im), a)
+
+
+@pytest.mark.parametrize("suffix", [".jpg", ".png"])
+def test_exif_orientation_and_icc_profile(tmp_path, suffix):
+    """A phone photo stored sideways (EXIF orientation 6: rotate 90 degrees clockwise)
+    is read as shown, so that its disparity map (predicted on the shown picture) fits;
+    its ICC profile (here any bytes: it is copied, not parsed) is written again."""
+    a = _texture(16)[:, :80]  # 64 x 80 stored, 80 x 64 shown
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    icc = b"not a real profile, copied as is" * 4
+    _save(tmp_path / f"p{suffix}", a, exif=exif, icc_profile=icc,
+          **({"quality": 95} if suffix == ".jpg" else {}))
+    shown = read_photo(tmp_path / f"p{suffix}")
+    assert shown.rgb.shape == (80, 64, 3) and shown.icc_profile == icc
+    if suffix == ".png":  # lossless: the pixels are the stored ones turned clockwise
+        assert np.array_equal(quantise(linear_to_srgb(shown.rgb), 8), np.rot90(a, -1))
+    _save(tmp_path / "d.png", np.full((80, 64), 50, np.uint8))
+    out = tmp_path / f"o{suffix}"
+    rc, _, err = run("refocus", tmp_path / f"p{suffix}", "--disparity", tmp_path / "d.png", "--K",
+                     10, "--disp-focus", 50 / 255, "-o", out, "-q")
+    assert rc == 0, err
+    with Image.open(out) as im:
+        assert im.size == (64, 80) and im.info.get("icc_profile") == icc
+        assert im.getexif().get(0x0112) in (None, 1)  # already upright
+
+
+def test_16_bit_png_keeps_its_icc_profile(tmp_path):
+    icc = b"profile bytes" * 8
+    lin = srgb_to_linear(_texture(17) / 255.0)
+    write_photo(tmp_path / "p.png", lin, None, Encoding("srgb"), 16, icc)
+    assert read_photo(tmp_path / "p.png").icc_profile == icc

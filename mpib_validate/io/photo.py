@@ -151,6 +151,10 @@ class Photo:
     format: str
     encoding: Encoding
     path: str
+    #: the file's embedded ICC colour profile, written again into the output (the
+    #: encodings above are transfer curves; the primaries, e.g. Display P3, are the
+    #: profile's, and a linear mix is the same in any linear RGB)
+    icc_profile: bytes | None = None
 
 
 def _png_header(path):
@@ -196,16 +200,22 @@ def _unfilter_row(kind: int, row: np.ndarray, prev: np.ndarray, bpp: int, path) 
     return np.frombuffer(bytes(out), np.uint8)
 
 
-def _read_png16(path) -> np.ndarray:
-    """A 16-bit PNG (any colour type, not interlaced) as ``(H, W, C)`` uint16. Pillow
-    reads 16-bit colour PNGs as 8 bit, so these are decoded here (zlib + unfilter)."""
+def _read_png16(path) -> tuple[np.ndarray, bytes | None]:
+    """A 16-bit PNG (any colour type, not interlaced) as ``(H, W, C)`` uint16, and its
+    ICC profile. Pillow reads 16-bit colour PNGs as 8 bit, so these are decoded here
+    (zlib + unfilter)."""
     data = Path(path).read_bytes()
-    pos, idat, ihdr = 8, [], None
+    pos, idat, ihdr, icc = 8, [], None, None
     while pos + 8 <= len(data):
         n, kind = struct.unpack(">I4s", data[pos:pos + 8])
         body = data[pos + 8:pos + 8 + n]
         if kind == b"IHDR":
             ihdr = struct.unpack(">IIBBBBB", body)
+        elif kind == b"iCCP" and b"\0" in body:
+            try:
+                icc = zlib.decompress(body[body.index(b"\0") + 2:])
+            except zlib.error:
+                icc = None
         elif kind == b"IDAT":
             idat.append(body)
         elif kind == b"IEND":
@@ -230,7 +240,7 @@ def _read_png16(path) -> np.ndarray:
     prev = np.zeros(stride, np.uint8)
     for y in range(H):
         prev = out[y] = _unfilter_row(int(rows[y, 0]), rows[y, 1:], prev, bpp, path)
-    return out.view(">u2").reshape(H, W, C).astype(np.uint16)
+    return out.view(">u2").reshape(H, W, C).astype(np.uint16), icc
 
 
 def _png_chunk(kind: bytes, body: bytes) -> bytes:
@@ -238,35 +248,47 @@ def _png_chunk(kind: bytes, body: bytes) -> bytes:
             + struct.pack(">I", zlib.crc32(kind + body) & 0xFFFFFFFF))
 
 
-def _png16_bytes(pixels: np.ndarray) -> bytes:
-    """A 16-bit RGB or RGBA PNG of ``(H, W, 3|4)`` uint16 (filter None, zlib level 6)."""
+def _png16_bytes(pixels: np.ndarray, icc_profile: bytes | None = None) -> bytes:
+    """A 16-bit RGB or RGBA PNG of ``(H, W, 3|4)`` uint16 (filter None, zlib level 6),
+    with the ICC profile if given."""
     H, W, C = pixels.shape
     rows = np.empty((H, 1 + 2 * C * W), np.uint8)
     rows[:, 0] = 0
     rows[:, 1:] = pixels.astype(">u2").view(np.uint8).reshape(H, -1)
     ihdr = struct.pack(">IIBBBBB", W, H, 16, {3: 2, 4: 6}[C], 0, 0, 0)
-    return (b"\x89PNG\r\n\x1a\n" + _png_chunk(b"IHDR", ihdr)
+    iccp = (_png_chunk(b"iCCP", b"ICC profile\0\0" + zlib.compress(icc_profile))
+            if icc_profile else b"")
+    return (b"\x89PNG\r\n\x1a\n" + _png_chunk(b"IHDR", ihdr) + iccp
             + _png_chunk(b"IDAT", zlib.compress(rows.tobytes(), 6)) + _png_chunk(b"IEND", b""))
 
 
-def _read_integer_pixels(path) -> np.ndarray:
-    """``(H, W, C)`` uint8/uint16 or float pixels of a JPEG, PNG or TIFF, as stored."""
+def _read_integer_pixels(path) -> tuple[np.ndarray, bytes | None]:
+    """``(H, W, C)`` uint8/uint16 or float pixels of a JPEG, PNG or TIFF, and the file's
+    ICC profile (or None). A JPEG's or PNG's EXIF orientation is applied (as viewers and
+    OpenCV's ``imread``, which the official code and depth networks use, do), so the
+    pixels are the picture as shown."""
     fmt = image_format(path)
     if fmt == "TIFF":
         import tifffile
 
         try:
-            a = tifffile.imread(str(path))
+            with tifffile.TiffFile(str(path)) as tf:
+                a = tf.asarray()
+                tag = tf.pages[0].tags.get(34675)  # InterColorProfile
+                icc = bytes(tag.value) if tag is not None else None
         except Exception as exc:  # tifffile raises several types for bad files
             raise PhotoError(f"cannot read '{path}': {' '.join(str(exc).split())}") from None
-        return a[..., None] if a.ndim == 2 else a
+        return (a[..., None] if a.ndim == 2 else a), icc
     head = _png_header(path) if fmt == "PNG" else None
     if head is not None and head[0] == 16 and head[1] != 0:
-        return _read_png16(path)
-    from PIL import Image, UnidentifiedImageError
+        a, icc = _read_png16(path)
+        return a, icc
+    from PIL import Image, ImageOps, UnidentifiedImageError
 
     try:
-        with Image.open(path) as im:
+        with Image.open(path) as opened:
+            icc = opened.info.get("icc_profile") or None
+            im = ImageOps.exif_transpose(opened)
             mode = im.mode
             if mode.startswith("I;16"):
                 a = np.asarray(im, np.uint16)
@@ -281,7 +303,7 @@ def _read_integer_pixels(path) -> np.ndarray:
                                  f"grey or RGB, or a float TIFF/EXR)")
     except (OSError, UnidentifiedImageError) as exc:
         raise PhotoError(f"cannot read '{path}': {' '.join(str(exc).split())}") from None
-    return a[..., None] if a.ndim == 2 else a
+    return (a[..., None] if a.ndim == 2 else a), icc
 
 
 def _bits_of(a: np.ndarray, path) -> int:
@@ -323,7 +345,7 @@ def read_photo(path, encoding: Encoding | None = None) -> Photo:
             rgba[..., :3], alpha[..., None], out=np.zeros_like(rgba[..., :3]),
             where=alpha[..., None] > 0)  # EXR colour is premultiplied
         return Photo(rgb, None if opaque else alpha, 32, fmt, Encoding("linear"), str(path))
-    a = _read_integer_pixels(path)
+    a, icc = _read_integer_pixels(path)
     bits = _bits_of(a, path)
     C = a.shape[2]
     if C not in (1, 2, 3, 4):
@@ -348,15 +370,16 @@ def read_photo(path, encoding: Encoding | None = None) -> Photo:
     if alpha is not None and np.all(alpha >= 1.0):
         alpha = None
     rgb = encoding.decode(colour / top) if bits != 32 else np.maximum(colour, 0.0)
-    return Photo(rgb, alpha, bits, fmt, encoding, str(path))
+    return Photo(rgb, alpha, bits, fmt, encoding, str(path), icc)
 
 
 def write_photo(path, rgb: np.ndarray, alpha: np.ndarray | None, encoding: Encoding,
-                bits: int = 8) -> None:
+                bits: int = 8, icc_profile: bytes | None = None) -> None:
     """Write straight linear colour (and alpha, None = opaque) as a JPEG, PNG or TIFF by
     the suffix of ``path``, atomically. ``bits``: 8 or 16 (PNG/TIFF; JPEG is always 8).
     The values are encoded and quantised by :func:`encode_photo`. A transparent image
-    cannot be a JPEG (:class:`PhotoError`)."""
+    cannot be a JPEG (:class:`PhotoError`). ``icc_profile``: embedded as is (the
+    input's, so that its primaries travel with the picture)."""
     fmt = image_format(path)
     if fmt not in ("JPEG", "PNG", "TIFF"):
         raise PhotoError(f"'{path}': a photograph is written as .jpg, .png or .tif")
@@ -370,17 +393,18 @@ def write_photo(path, rgb: np.ndarray, alpha: np.ndarray | None, encoding: Encod
         if fmt == "TIFF":
             import tifffile
 
-            tifffile.imwrite(str(tmp), pixels, photometric="rgb")
+            tifffile.imwrite(str(tmp), pixels, photometric="rgb", iccprofile=icc_profile)
         elif bits == 16:
-            tmp.write_bytes(_png16_bytes(pixels))
+            tmp.write_bytes(_png16_bytes(pixels, icc_profile))
         else:
             from PIL import Image
 
             im = Image.fromarray(pixels)  # uint8 (H, W, 3|4): RGB or RGBA
+            extra = {"icc_profile": icc_profile} if icc_profile else {}
             if fmt == "JPEG":
-                im.save(tmp, format="JPEG", quality=JPEG_QUALITY, subsampling=0)
+                im.save(tmp, format="JPEG", quality=JPEG_QUALITY, subsampling=0, **extra)
             else:
-                im.save(tmp, format="PNG")
+                im.save(tmp, format="PNG", **extra)
 
 
 # ------------------------------------------------------------------------------------
@@ -463,7 +487,7 @@ def read_scalar_map(path, what: str = "disparity map") -> ScalarMap:
                 name = "R" if "R" in ch else next(iter(ch))
             a = ch[name][..., None]
     elif image_format(p) in ("JPEG", "PNG", "TIFF"):
-        a = _read_integer_pixels(p)
+        a, _ = _read_integer_pixels(p)
     else:
         raise PhotoError(f"'{path}': unknown {what} type (use .png, .jpg, .tif, .exr or .npy)")
     bits = 32 if suffix in (".exr",) else _bits_of(a, path)
