@@ -5,6 +5,10 @@ Blender multilayer file (``ViewLayer.Combined.*`` and ``ViewLayer.Depth.Z``), on
 this project's renders (``AllInFocus.*`` and ``Depth.Z``), or colour and depth as two
 files. The camera travels in the header (:mod:`mpib_validate.io.camera_header`).
 
+A photograph with a disparity map (``mpib refocus photo.jpg --disparity disp.png``, read
+by :mod:`mpib_validate.io.photo`) comes in as :class:`Passes` whose ``disparity`` is
+given directly instead of ``1/depth``; the rest is the same.
+
 A layered render (one view layer per depth group, ``mpib_group_<k>.Combined.*`` and
 ``mpib_group_<k>.Depth.Z``, see :mod:`mpib_validate.blender.layers`) is read by
 :func:`load_layered_passes` and refocused from its group layers

@@ -209,7 +209,7 @@ def _read_png16(path) -> tuple[np.ndarray, bytes | None]:
     while pos + 8 <= len(data):
         n, kind = struct.unpack(">I4s", data[pos:pos + 8])
         body = data[pos + 8:pos + 8 + n]
-        if kind == b"IHDR":
+        if kind == b"IHDR" and len(body) == 13:
             ihdr = struct.unpack(">IIBBBBB", body)
         elif kind == b"iCCP" and b"\0" in body:
             try:
@@ -301,7 +301,7 @@ def _read_integer_pixels(path) -> tuple[np.ndarray, bytes | None]:
             else:
                 raise PhotoError(f"'{path}': unsupported image mode {mode} (use 8/16-bit "
                                  f"grey or RGB, or a float TIFF/EXR)")
-    except (OSError, UnidentifiedImageError) as exc:
+    except (OSError, UnidentifiedImageError, Image.DecompressionBombError) as exc:
         raise PhotoError(f"cannot read '{path}': {' '.join(str(exc).split())}") from None
     return (a[..., None] if a.ndim == 2 else a), icc
 
