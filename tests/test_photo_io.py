@@ -503,3 +503,29 @@ def test_16_bit_png_keeps_its_icc_profile(tmp_path):
     lin = srgb_to_linear(_texture(17) / 255.0)
     write_photo(tmp_path / "p.png", lin, None, Encoding("srgb"), 16, icc)
     assert read_photo(tmp_path / "p.png").icc_profile == icc
+
+
+def test_photo_with_a_depth_exr_and_a_float_tiff_map(tmp_path):
+    import tifffile
+
+    from mpib_validate.io.exr import write_exr
+
+    a = _texture(18)
+    photo = _save(tmp_path / "p.png", a)
+    z = np.where(_disparity_u8() > 100, 1.0, 4.0).astype(np.float32)  # metres
+    write_exr(tmp_path / "z.exr", {"Z": z})
+    out = tmp_path / "o.png"
+    rc, stdout, err = run("refocus", photo, "--depth", tmp_path / "z.exr", "--blur-parameter", 16,
+                          "--focus-depth", 1.0, "-o", out, "-q")
+    assert rc == 0, err
+    inner = (slice(20, 44), slice(34, 66))  # the near rectangle, in focus at 1 m
+    assert np.array_equal(np.asarray(Image.open(out))[inner], a[inner])
+    rc, _, err = run("refocus", photo, "--depth", tmp_path / "z.exr", "--K", 16, "--disp-focus",
+                     0.5, "-o", tmp_path / "o2.png")
+    assert "--K" in one_line_error(rc, err)
+    # the same scene as a float TIFF disparity (1/Z), with the paper's K
+    tifffile.imwrite(tmp_path / "d.tif", (1.0 / z).astype(np.float32))
+    rc, _, err = run("refocus", photo, "--disparity", tmp_path / "d.tif", "--K", 16,
+                     "--disp-focus", 1.0, "-o", tmp_path / "o3.png", "-q")
+    assert rc == 0, err
+    assert np.array_equal(np.asarray(Image.open(tmp_path / "o3.png")), np.asarray(Image.open(out)))

@@ -290,8 +290,8 @@ def _read_integer_pixels(path) -> tuple[np.ndarray, bytes | None]:
             icc = opened.info.get("icc_profile") or None
             im = ImageOps.exif_transpose(opened)
             mode = im.mode
-            if mode.startswith("I;16"):
-                a = np.asarray(im, np.uint16)
+            if mode.startswith("I;16") or (mode == "I" and head is not None and head[0] == 16):
+                a = np.asarray(im).astype(np.uint16)  # 16-bit grey (some Pillows say "I")
             elif mode in ("L", "RGB", "RGBA", "LA"):
                 a = np.asarray(im)
             elif mode == "P":
