@@ -406,7 +406,7 @@ def _refocus_photo(args) -> int:
     from mpib_validate.io.atomic import check_outputs
     from mpib_validate.io.photo import image_format, output_bits, read_disparity, read_photo, write_photo
     from mpib_validate.layers.passes import depth_to_disparity
-    from mpib_validate.refocus import Passes, _depth_channel, focus_from_pixel, write_result
+    from mpib_validate.refocus import _depth_channel, focus_from_pixel, passes_from_photo, write_result
     from mpib_validate.io.exr import read_exr
 
     for opt, given in (("--layered", args.layered), ("--background", args.background),
@@ -453,13 +453,7 @@ def _refocus_photo(args) -> int:
     if args.disp_focus is not None and args.K is None:
         raise CliError("--disp-focus is the paper's focus on the [0, 1] disparity: use it "
                        "with --K (else --focus-disparity)")
-    depth = np.divide(1.0, D, out=np.full(D.shape, np.inf), where=D > 0)
-    # the passes' colour is premultiplied by the film alpha (a photograph's is straight)
-    colour = photo.rgb if photo.alpha is None else photo.rgb * photo.alpha[..., None]
-    passes = Passes(colour.astype(np.float32), depth, f"{args.input} ({photo.format}, "
-                    f"{photo.encoding.describe()})", dsrc, None,
-                    None if photo.alpha is None else photo.alpha.astype(np.float32),
-                    disparity=D)
+    passes = passes_from_photo(photo, D, dsrc)
     if args.K is not None:
         if args.focus_depth is not None:
             raise CliError("--focus-depth is a distance, which a normalised disparity map has "

@@ -182,6 +182,25 @@ def load_passes(path, depth_path=None, view_layer: str | None = None) -> Passes:
                   rgba[..., 3].astype(np.float32), notices=[notice] if notice else [])
 
 
+def passes_from_photo(photo, disparity: np.ndarray, disparity_source: str) -> Passes:
+    """The :class:`Passes` of a photograph (:class:`mpib_validate.io.photo.Photo`: straight
+    linear colour, alpha or None) and its ``(H, W)`` disparity (0 = infinitely far; a
+    normalised map as it is, the paper's convention): colour premultiplied by the
+    alpha as passes hold it, ``depth = 1/disparity`` (inf at 0) for display, and the
+    disparity itself, which :func:`refocus` then uses."""
+    D = np.asarray(disparity, np.float64)
+    if D.shape != photo.rgb.shape[:2]:
+        raise PassError(f"sizes differ: the photograph '{photo.path}' is {photo.rgb.shape[1]}x"
+                        f"{photo.rgb.shape[0]}, the disparity '{disparity_source}' is "
+                        f"{D.shape[1]}x{D.shape[0]}")
+    depth = np.divide(1.0, D, out=np.full(D.shape, np.inf), where=D > 0)
+    colour = photo.rgb if photo.alpha is None else photo.rgb * photo.alpha[..., None]
+    alpha = None if photo.alpha is None else photo.alpha.astype(np.float32)
+    return Passes(colour.astype(np.float32), depth,
+                  f"{photo.path} ({photo.format}, {photo.encoding.describe()})",
+                  disparity_source, None, alpha, disparity=D)
+
+
 #: View layers named like this (``mpib_group_0`` farthest, see
 #: :mod:`mpib_validate.blender.layers`) are read as a layered input automatically.
 GROUP_LAYER = re.compile(r"^mpib_group_(\d+)$")
