@@ -529,3 +529,88 @@ def test_photo_with_a_depth_exr_and_a_float_tiff_map(tmp_path):
                      "--disp-focus", 1.0, "-o", tmp_path / "o3.png", "-q")
     assert rc == 0, err
     assert np.array_equal(np.asarray(Image.open(tmp_path / "o3.png")), np.asarray(Image.open(out)))
+
+
+# --------------------------------------------------------------------------- fuzz
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+# valid choices repeated so that about half the examples run through (the rest refused)
+_MAPS = st.sampled_from(["u8", "u16", "rgb-grey", "float", "constant"] * 3
+                        + ["rgb-colour", "float-nan", "float-neg", "float-big", "small"])
+
+
+def _write_map(tmp, kind, rng, h, w):
+    if kind in ("u8", "constant", "small"):
+        hh, ww = (h // 2, w // 2) if kind == "small" else (h, w)
+        v = np.full((hh, ww), 77, np.uint8) if kind == "constant" else rng.integers(
+            0, 256, (hh, ww), dtype=np.uint8)
+        return _save(tmp / "d.png", v)
+    if kind == "u16":
+        return _save(tmp / "d.png", rng.integers(0, 65536, (h, w), dtype=np.uint16))
+    if kind.startswith("rgb"):
+        v = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+        if kind == "rgb-grey":
+            v[..., 1] = v[..., 2] = v[..., 0]
+        return _save(tmp / "d.png", v)
+    f = rng.uniform(0, 1, (h, w)).astype(np.float32)
+    if kind == "float-nan":
+        f[1, 2] = np.nan
+    elif kind == "float-neg":
+        f[0, 0] = -0.5
+    elif kind == "float-big":
+        f *= 7
+    np.save(tmp / "d.npy", f)
+    return tmp / "d.npy"
+
+
+@settings(max_examples=30, deadline=None, database=None,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+@given(kind=_MAPS, photo=st.sampled_from([".jpg", ".png", ".tif"]),
+       out=st.sampled_from([".jpg", ".png", ".tif", ".exr"] * 3 + [".bmp"]),
+       K=st.sampled_from([12.0] * 6 + [0.5, None, 1e7]),
+       focus=st.sampled_from([0.0, 0.4, 1.0] * 3 + [None, 1.5, -0.1]),
+       extra=st.lists(st.sampled_from([["--gamma", "2.2"], ["--encoding", "linear"],
+                                       ["--official-focus-range"], ["--focus-pixel", "3,4"],
+                                       ["--blur-parameter", "5"], ["--fstop", "2"],
+                                       ["--focus-disparity", "0.3"], ["--exr", "x.exr"]]),
+                      max_size=1),
+       seed=st.integers(0, 1000))
+def test_fuzz_photo_refocus_succeeds_or_refuses_in_one_line(tmp_path_factory, kind, photo, out,
+                                                            K, focus, extra, seed):
+    import tempfile
+    from pathlib import Path
+
+    tmp = Path(tempfile.mkdtemp(dir=tmp_path_factory.getbasetemp()))
+    rng = np.random.default_rng(seed)
+    h, w = 16, 24
+    a = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    ppath = _save(tmp / f"p{photo}", a) if photo != ".tif" else tmp / "p.tif"
+    if photo == ".tif":
+        import tifffile
+
+        tifffile.imwrite(ppath, (a.astype(np.uint16) * 257), photometric="rgb")
+    dpath = _write_map(tmp, kind, rng, h, w)
+    args = [ppath, "--disparity", dpath, "-o", tmp / f"o{out}", "-q", "--max-memory-gb", "2"]
+    if K is not None:
+        args += ["--K", K]
+    if focus is not None:
+        args += ["--disp-focus", focus]
+    for e in extra:
+        args += [e[0], tmp / e[1]] if e[0] == "--exr" else e
+    before = {p.name: p.read_bytes() for p in tmp.iterdir()}
+    rc, stdout, err = run("refocus", *args)
+    assert "Traceback" not in err, err
+    assert rc in (0, 2), (rc, err)
+    after = {p.name: p.read_bytes() for p in tmp.iterdir()}
+    assert all(after.get(k) == v for k, v in before.items())  # no input changed
+    new = set(after) - set(before)
+    if rc == 2:
+        one_line_error(rc, err)
+        assert not new, new  # no partial output, no temporary file
+        return
+    assert f"o{out}" in new
+    for name in new:
+        if name.endswith(".exr"):
+            assert all(np.isfinite(c).all() for c in read_exr(tmp / name).channels.values())
