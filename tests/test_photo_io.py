@@ -614,3 +614,13 @@ def test_fuzz_photo_refocus_succeeds_or_refuses_in_one_line(tmp_path_factory, ki
     for name in new:
         if name.endswith(".exr"):
             assert all(np.isfinite(c).all() for c in read_exr(tmp / name).channels.values())
+
+
+def test_help_puts_the_papers_parameters_beside_the_physical_ones():
+    rc, out, _ = run("refocus", "--help")
+    assert rc == 0
+    for option in ("--disparity", "--K", "--disp-focus", "--gamma", "--encoding", "--exr",
+                   "--official-focus-range", "--fstop", "--focal-mm", "--blur-parameter"):
+        assert option in out, option
+    table = out[out.index("parameters, paper and physical"):]
+    assert "--K K" in table and "--fstop N" in table and "A = K = R f_px" in table

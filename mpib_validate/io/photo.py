@@ -443,7 +443,8 @@ def _one_channel(a: np.ndarray, path, what: str) -> np.ndarray:
             y, x = np.argwhere(differ)[0]
             raise PhotoError(f"'{path}' is a colour image (R, G, B differ at "
                              f"{int(differ.sum())} pixel(s), first at row {y}, column {x}); "
-                             f"a {what} is one grey channel")
+                             f"a {what} is one grey channel (a colour-mapped visualisation? "
+                             f"save the network's grey output)")
         return a[..., 0]
     if C != 1:
         raise PhotoError(f"'{path}' has {C} channels; a {what} is one grey channel")
