@@ -115,18 +115,22 @@ def test_16_bit_colour_round_trips_exactly(tmp_path, suffix):
 
 def test_16_bit_png_filters_are_undone(tmp_path):
     # A 16-bit PNG written by another encoder uses the Sub, Up, Average and Paeth
-    # filters; one row of each (filtered here by the PNG spec's definitions).
+    # filters: each row with one (filtered here, byte by byte, by the PNG spec's
+    # definitions), decoded by the diagonal wavefront.
     import struct
     import zlib
 
     from mpib_validate.io.photo import _paeth, _png_chunk
 
     rng = np.random.default_rng(2)
-    h, w, bpp = 5, 7, 6
+    h, w, bpp = 23, 31, 6
     img = rng.integers(0, 65536, (h, w, 3), dtype=np.uint16)
+    img[:8, :8] = 65535  # flat patches: Paeth's ties and Average's carries
+    img[-8:, -8:] = 0
     raw = img.astype(">u2").view(np.uint8).reshape(h, -1).astype(int)
     rows, prev = [], np.zeros(raw.shape[1], int)
-    for y, kind in enumerate([0, 1, 2, 3, 4]):
+    kinds = [0, 1, 2, 3, 4] + list(rng.integers(0, 5, h - 5))
+    for y, kind in enumerate(kinds):
         cur, f = raw[y], np.zeros_like(raw[y])
         for i in range(cur.size):
             a = cur[i - bpp] if i >= bpp else 0
