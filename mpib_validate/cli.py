@@ -404,7 +404,7 @@ def _refocus_photo(args) -> int:
 
     from mpib_validate.camera import OFFICIAL_BINS, from_paper, widen_focus
     from mpib_validate.io.atomic import check_outputs
-    from mpib_validate.io.photo import image_format, output_bits, read_disparity, read_photo, write_photo
+    from mpib_validate.io.photo import Encoding, image_format, output_bits, read_disparity, read_photo, write_photo
     from mpib_validate.layers.passes import depth_to_disparity
     from mpib_validate.refocus import _depth_channel, focus_from_pixel, passes_from_photo, write_result
     from mpib_validate.io.exr import read_exr
@@ -432,6 +432,15 @@ def _refocus_photo(args) -> int:
     if args.K is None and args.blur_parameter is None and not lens:
         raise CliError("no blur: give --K (the paper's blur parameter, pixels per unit of the "
                        "[0, 1] disparity), --blur-parameter, or --fstop and --focal-mm")
+    if args.K is None:
+        for opt, given in (("--disp-focus", args.disp_focus is not None),
+                           ("--official-focus-range", args.official_focus_range)):
+            if given:
+                raise CliError(f"{opt} is in the paper's convention on the [0, 1] disparity: "
+                               f"use it with --K")
+    elif args.focus_depth is not None:
+        raise CliError("--focus-depth is a distance, which a normalised disparity map has no "
+                       "scale for: give --disp-focus (in [0, 1]) or --focus-pixel X,Y")
     photo = read_photo(args.input, _photo_encoding(args))
     H, W = photo.rgb.shape[:2]
     if args.disparity is not None:
@@ -450,14 +459,8 @@ def _refocus_photo(args) -> int:
                            f"photograph is {W}x{H}")
         dsrc = str(args.depth)
         D = depth_to_disparity(z, args.far_limit, source=dsrc)
-    if args.disp_focus is not None and args.K is None:
-        raise CliError("--disp-focus is the paper's focus on the [0, 1] disparity: use it "
-                       "with --K (else --focus-disparity)")
     passes = passes_from_photo(photo, D, dsrc)
     if args.K is not None:
-        if args.focus_depth is not None:
-            raise CliError("--focus-depth is a distance, which a normalised disparity map has "
-                           "no scale for: give --disp-focus (in [0, 1]) or --focus-pixel X,Y")
         # on a normalised map --focus-disparity is the same number as --disp-focus
         focus = args.disp_focus if args.disp_focus is not None else args.focus_disparity
         if args.focus_pixel is not None:
@@ -477,9 +480,6 @@ def _refocus_photo(args) -> int:
         A, d_f = used.camera.blur_parameter, used.camera.focus_disparity
         camera_info = used.header()
     if args.official_focus_range:
-        if args.K is None:
-            raise CliError("--official-focus-range widens the focus by half of the official "
-                           "renderer's 1/32 bins of the [0, 1] disparity: use it with --K")
         passes.disparity = widen_focus(D, d_f, 0.5 / OFFICIAL_BINS)
     result = _plan_and_refocus(args, passes, A, d_f, passes.disparity)
     result.info["camera"] = camera_info
@@ -495,7 +495,7 @@ def _refocus_photo(args) -> int:
     else:
         # a linear input written to an integer file is encoded as sRGB unless told
         enc = photo.encoding if photo.encoding.name != "linear" else (
-            _photo_encoding(args) or _default_output_encoding())
+            _photo_encoding(args) or Encoding("srgb"))
         write_photo(args.output, img[..., :3], alpha, enc, output_bits(photo, args.output),
                     photo.icc_profile)
         written.append(Path(args.output))
@@ -504,20 +504,11 @@ def _refocus_photo(args) -> int:
     i = result.info
     print(f"refocused {W}x{H} ({args.preset}): {i['planes']} planes, largest blur radius "
           f"{i['largest_radius_px']:.1f} px, fill {100 * i['fill_fraction']:.1f} % of pixels, "
-          f"A = K = {A:.4g} px, d_f = {d_f:.5g}, {photo.encoding.describe()}, "
-          f"{i['seconds']:.2f} s" if args.K is not None else
-          f"refocused {W}x{H} ({args.preset}): {i['planes']} planes, largest blur radius "
-          f"{i['largest_radius_px']:.1f} px, A = {A:.4g} px, d_f = {d_f:.5g}, "
+          f"{'A = K' if args.K is not None else 'A'} = {A:.4g} px, d_f = {d_f:.5g}, "
           f"{photo.encoding.describe()}, {i['seconds']:.2f} s")
     for p in written:
         print(f"wrote {p}")
     return 0
-
-
-def _default_output_encoding():
-    from mpib_validate.io.photo import Encoding
-
-    return Encoding("srgb")
 
 
 def cmd_refocus(args) -> int:
