@@ -199,3 +199,42 @@ def blender_camera(lens_mm: float, sensor_width_mm: float, sensor_height_mm: flo
                                    width, height)
     R = lens_mm * 1e-3 / unit_scale / (2.0 * fstop)
     return Camera(width, height, R * f_px, 1.0 / focus_distance, f_px)
+
+
+# --------------------------------------------------------------------------------------
+# The MPIB paper's parameter convention (photographs with a normalised disparity map)
+
+#: The official renderer's planes: ``d_i = (i + 0.5) / 32`` over the normalised [0, 1]
+#: disparity (plane 0 the farthest); its ``increase_focus_range`` (used by its demo)
+#: subtracts half a bin, ``0.5 / 32``, from every plane's defocus ``|d_i - d_f|``.
+OFFICIAL_BINS = 32
+
+
+def from_paper(K: float, disp_focus: float) -> tuple[float, float]:
+    """The project's ``(A, d_f)`` for the paper's blur parameter ``K`` (pixels per unit of
+    the normalised [0, 1] disparity) and focus ``disp_focus`` in [0, 1].
+
+    The paper's blur radius is ``r = K |d - d_f|`` on the normalised disparity ``d``;
+    the project's is ``r = A |d - d_f|`` on the MPI's disparity. With the normalised map
+    used as the MPI's disparity directly (0 = infinitely far, 1 = the nearest the
+    network saw), ``A = K`` and ``d_f = disp_focus``: the same radius for every ``d``.
+    Raises ``ValueError`` naming the option for ``K <= 0`` or a focus outside [0, 1]."""
+    if not (math.isfinite(K) and K > 0):
+        raise ValueError(f"--K must be finite and > 0 (pixels of blur per unit of the "
+                         f"[0, 1] disparity), got {K}")
+    if not (math.isfinite(disp_focus) and 0.0 <= disp_focus <= 1.0):
+        raise ValueError(f"--disp-focus must be in [0, 1] (the normalised disparity in "
+                         f"focus), got {disp_focus}")
+    return float(K), float(disp_focus)
+
+
+def widen_focus(disparity, focus_disparity: float, half_width: float):
+    """Disparity remapped so that ``A |d' - d_f| = A max(|d - d_f| - h, 0)``: everything
+    within ``h`` of the focus is sharp and every other defocus is ``h`` smaller, as the
+    official renderer's ``increase_focus_range`` does with ``h = 0.5 / 32``:
+    ``d' = d_f + sign(d - d_f) max(|d - d_f| - h, 0)``. Numpy in, numpy out."""
+    import numpy as np
+
+    d = np.asarray(disparity, np.float64)
+    off = d - focus_disparity
+    return focus_disparity + np.sign(off) * np.maximum(np.abs(off) - half_width, 0.0)

@@ -307,12 +307,222 @@ def _progress_bar(enabled: bool, desc: str, total: float, unit: str):
     return tqdm(total=total, desc=desc, unit=unit, leave=False, disable=None)
 
 
-def cmd_refocus(args) -> int:
+class _TableFormatter(argparse.HelpFormatter):
+    """Help text wrapped as usual, except text with line breaks (a table), kept as is."""
+
+    def _fill_text(self, text, width, indent):
+        if "\n" in text:
+            return "".join(indent + line for line in text.splitlines(keepends=True))
+        return super()._fill_text(text, width, indent)
+
+
+_REFOCUS_EPILOG = """\
+parameters, paper and physical (blur radius r in pixels, disparity d):
+  paper (photographs)       physical (renders)                  the model
+  --K K                     --fstop N --focal-mm F [--sensor-mm] A = K = R f_px
+                            or --blur-parameter A
+  --disp-focus D in [0, 1]  --focus-depth Z | --focus-disparity  d_f = D = 1/Z
+  --focus-pixel X,Y         --focus-pixel X,Y                    d_f = d at (X, Y)
+  map d in [0, 1], 0 = far  --depth FILE (d = 1/Z)               r = A |d - d_f|
+  --gamma 2.2, else sRGB    EXR: linear                          Eq. 1 on linear colour
+
+example: mpib refocus photo.jpg --disparity disp.png --K 60 --disp-focus 0.81 -o out.jpg
+"""
+
+
+def _plan_and_refocus(args, passes, A: float, d_f: float, D, background=None):
+    """Estimate the memory from the disparity ``D`` (refused past --max-memory-gb),
+    print the plan, and refocus with a progress bar on a terminal."""
     from mpib_validate import budget
+    from mpib_validate.refocus import refocus
+
+    H, W = D.shape
+    est = budget.refocus_estimate(D, A, d_f, args.preset, background=background is not None)
+    budget.check(est, _limit(args))
+    print(f"refocusing {W}x{H} ({args.preset}): {est.describe()}", flush=True)
+    bar = _progress_bar(not args.quiet, "refocus", 100, "%")
+
+    def progress(fraction):
+        if bar is not None:
+            bar.update(max(0, int(round(100 * fraction)) - bar.n))
+
+    try:
+        result = refocus(passes, A, d_f, args.preset, args.far_limit, background=background,
+                         progress=progress)
+        if bar is not None:
+            bar.refresh()
+    finally:
+        if bar is not None:
+            bar.close()
+    return result
+
+
+_PHOTO_ONLY = ("disparity", "K", "disp_focus", "gamma", "encoding", "exr", "official_focus_range")
+
+
+def _photo_input(args) -> bool:
+    """Whether ``mpib refocus`` reads a photograph (JPEG/PNG/TIFF colour, or any colour
+    with ``--disparity``) rather than rendered EXR passes."""
+    from mpib_validate.io.photo import image_format
+
+    return args.disparity is not None or image_format(args.input) in ("JPEG", "PNG", "TIFF")
+
+
+def _photo_encoding(args):
+    from mpib_validate.io.photo import Encoding
+
+    if args.gamma is not None:
+        if args.encoding not in (None, "gamma"):
+            raise CliError(f"--gamma {args.gamma:g} is the paper's encoding; do not combine it "
+                           f"with --encoding {args.encoding}")
+        return Encoding("gamma", args.gamma)
+    if args.encoding == "gamma":
+        raise CliError("--encoding gamma needs --gamma G (the paper uses 2.2)")
+    return Encoding(args.encoding) if args.encoding else None
+
+
+def _photo_outputs(args) -> list[Path]:
+    from mpib_validate.io.photo import image_format
+
+    fmt = image_format(args.output)
+    if fmt is None:
+        raise CliError(f"-o '{args.output}': give a .jpg, .png, .tif or .exr name")
+    outs = _outputs(args.output, not args.no_preview) if fmt == "EXR" else [Path(args.output)]
+    if args.exr:
+        if image_format(args.exr) != "EXR":
+            raise CliError(f"--exr '{args.exr}': give a .exr name")
+        outs.append(Path(args.exr))
+    return outs
+
+
+def _refocus_photo(args) -> int:
+    """``mpib refocus`` of a photograph with a disparity map (or a depth EXR): the MPI is
+    built from the linearised colour and the disparity by the same
+    :func:`~mpib_validate.refocus.refocus` as rendered passes; the output is written in
+    the input's encoding (see :mod:`mpib_validate.io.photo`)."""
+    import numpy as np
+
+    from mpib_validate.camera import OFFICIAL_BINS, from_paper, widen_focus
+    from mpib_validate.io.atomic import check_outputs
+    from mpib_validate.io.photo import Encoding, image_format, output_bits, read_disparity, read_photo, write_photo
+    from mpib_validate.layers.passes import depth_to_disparity
+    from mpib_validate.refocus import _depth_channel, focus_from_pixel, passes_from_photo, write_result
+    from mpib_validate.io.exr import read_exr
+
+    for opt, given in (("--layered", args.layered), ("--background", args.background),
+                       ("--view-layer", args.view_layer)):
+        if given:
+            raise CliError(f"{opt} is for rendered EXR passes, not a photograph with a "
+                           f"disparity map")
+    if (args.disparity is None) == (args.depth is None):
+        raise CliError(f"'{args.input}' is a photograph: give its disparity map with "
+                       f"--disparity FILE (or a depth EXR with --depth FILE), one of them")
+    inputs = [args.input] + [p for p in (args.disparity, args.depth) if p]
+    outputs = _photo_outputs(args)
+    check_outputs(outputs, inputs)
+    if args.K is not None and args.blur_parameter is not None:
+        raise CliError("--K and --blur-parameter both give the blur: give one")
+    lens = [o for o, v in (("--fstop", args.fstop), ("--focal-mm", args.focal_mm),
+                           ("--sensor-mm", args.sensor_mm),
+                           ("--sensor-height-mm", args.sensor_height_mm),
+                           ("--sensor-fit", args.sensor_fit),
+                           ("--scene-unit-m", args.scene_unit_m)) if v is not None]
+    if args.K is not None and lens:
+        raise CliError(f"--K gives the blur directly: do not combine it with {', '.join(lens)}")
+    if args.K is None and args.blur_parameter is None and not lens:
+        raise CliError("no blur: give --K (the paper's blur parameter, pixels per unit of the "
+                       "[0, 1] disparity), --blur-parameter, or --fstop and --focal-mm")
+    if args.K is None:
+        for opt, given in (("--disp-focus", args.disp_focus is not None),
+                           ("--official-focus-range", args.official_focus_range)):
+            if given:
+                raise CliError(f"{opt} is in the paper's convention on the [0, 1] disparity: "
+                               f"use it with --K")
+    elif args.focus_depth is not None:
+        raise CliError("--focus-depth is a distance, which a normalised disparity map has no "
+                       "scale for: give --disp-focus (in [0, 1]) or --focus-pixel X,Y")
+    photo = read_photo(args.input, _photo_encoding(args))
+    H, W = photo.rgb.shape[:2]
+    if args.disparity is not None:
+        dmap = read_disparity(args.disparity, (H, W), normalised=args.K is not None)
+        if dmap.normalised and lens:
+            raise CliError(f"'{args.disparity}' is a normalised {dmap.kind} map, which has no "
+                           f"physical scale: give --K instead of {', '.join(lens)}")
+        D, dsrc = dmap.values, f"{args.disparity} ({dmap.kind} disparity)"
+    else:
+        if args.K is not None:
+            raise CliError("--K is per unit of a [0, 1] normalised disparity: give "
+                           "--disparity, or --blur-parameter with --depth")
+        z = _depth_channel(read_exr(args.depth), args.depth)
+        if z.shape != (H, W):
+            raise CliError(f"depth '{args.depth}' is {z.shape[1]}x{z.shape[0]} but the "
+                           f"photograph is {W}x{H}")
+        dsrc = str(args.depth)
+        D = depth_to_disparity(z, args.far_limit, source=dsrc)
+    passes = passes_from_photo(photo, D, dsrc)
+    if args.K is not None:
+        # on a normalised map --focus-disparity is the same number as --disp-focus
+        focus = args.disp_focus if args.disp_focus is not None else args.focus_disparity
+        if args.focus_pixel is not None:
+            x, y = args.focus_pixel
+            if not (0 <= x < W and 0 <= y < H):
+                raise CliError(f"--focus-pixel {x},{y} is outside the {W}x{H} image")
+            focus = focus_from_pixel(passes, x, y)
+        if focus is None:
+            raise CliError("no focus: give --disp-focus (in [0, 1]) or --focus-pixel X,Y")
+        A, d_f = from_paper(args.K, focus)
+        sources = {"blur_parameter": "--K", "focus_disparity": "--focus-pixel {},{}".format(
+            *args.focus_pixel) if args.focus_pixel else (
+            "--disp-focus" if args.disp_focus is not None else "--focus-disparity")}
+        camera_info = {"K": A, "disp_focus": d_f, "from": sources}
+    else:
+        used = _refocus_camera(args, passes)
+        A, d_f = used.camera.blur_parameter, used.camera.focus_disparity
+        camera_info = used.header()
+    if args.official_focus_range:
+        passes.disparity = widen_focus(D, d_f, 0.5 / OFFICIAL_BINS)
+    result = _plan_and_refocus(args, passes, A, d_f, passes.disparity)
+    result.info["camera"] = camera_info
+    result.info["encoding"] = photo.encoding.describe()
+    img = result.image
+    if not np.isfinite(img).all():  # never a NaN image with exit 0
+        raise CliError("the refocused image holds NaN or infinite values (a bug; please "
+                       "report it with the inputs)")
+    alpha = None if photo.alpha is None else img[..., 3]
+    written = []
+    if image_format(args.output) == "EXR":
+        written += write_result(args.output, result, preview=not args.no_preview)
+    else:
+        # a linear input written to an integer file is encoded as sRGB unless told
+        enc = photo.encoding if photo.encoding.name != "linear" else (
+            _photo_encoding(args) or Encoding("srgb"))
+        write_photo(args.output, img[..., :3], alpha, enc, output_bits(photo, args.output),
+                    photo.icc_profile)
+        written.append(Path(args.output))
+    if args.exr:
+        written += write_result(args.exr, result, preview=False)
+    i = result.info
+    print(f"refocused {W}x{H} ({args.preset}): {i['planes']} planes, largest blur radius "
+          f"{i['largest_radius_px']:.1f} px, fill {100 * i['fill_fraction']:.1f} % of pixels, "
+          f"{'A = K' if args.K is not None else 'A'} = {A:.4g} px, d_f = {d_f:.5g}, "
+          f"{photo.encoding.describe()}, {i['seconds']:.2f} s")
+    for p in written:
+        print(f"wrote {p}")
+    return 0
+
+
+def cmd_refocus(args) -> int:
     from mpib_validate.io.atomic import check_outputs
     from mpib_validate.layers.passes import depth_to_disparity
-    from mpib_validate.refocus import load_layered_passes, load_passes, read_background, refocus, write_result
+    from mpib_validate.refocus import load_layered_passes, load_passes, read_background, write_result
 
+    if _photo_input(args):
+        return _refocus_photo(args)
+    for name in _PHOTO_ONLY:
+        if getattr(args, name) not in (None, False):
+            opt = "--" + name.replace("_", "-")
+            raise CliError(f"{opt} is for a photograph with a disparity map (--disparity "
+                           f"FILE); '{args.input}' is read as rendered EXR passes")
     inputs = [args.input] + [p for p in (args.depth, args.background) if p]
     check_outputs(_outputs(args.output, not args.no_preview), inputs)
     if args.layered and (args.depth or args.background or args.view_layer):
@@ -334,23 +544,7 @@ def cmd_refocus(args) -> int:
     A, d_f = used.camera.blur_parameter, used.camera.focus_disparity
     background = read_background(args.background, (H, W)) if args.background else None
     D = depth_to_disparity(passes.depth, args.far_limit, source=passes.depth_source)
-    est = budget.refocus_estimate(D, A, d_f, args.preset, background=background is not None)
-    budget.check(est, _limit(args))
-    print(f"refocusing {W}x{H} ({args.preset}): {est.describe()}", flush=True)
-    bar = _progress_bar(not args.quiet, "refocus", 100, "%")
-
-    def progress(fraction):
-        if bar is not None:
-            bar.update(max(0, int(round(100 * fraction)) - bar.n))
-
-    try:
-        result = refocus(passes, A, d_f, args.preset, args.far_limit, background=background,
-                         progress=progress)
-        if bar is not None:
-            bar.refresh()
-    finally:
-        if bar is not None:
-            bar.close()
+    result = _plan_and_refocus(args, passes, A, d_f, D, background)
     result.info["camera"] = used.header()  # which camera fields were used, and from where
     written = write_result(args.output, result, preview=not args.no_preview)
     i = result.info
@@ -507,13 +701,40 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--json", action="store_true", help="print JSON")
     c.set_defaults(func=cmd_compare)
 
-    f = sub.add_parser("refocus", help="refocus a rendered picture (colour + depth EXR)",
+    f = sub.add_parser("refocus", help="refocus a rendered picture (colour + depth EXR) or a "
+                                       "photograph with a disparity map",
+                       formatter_class=_TableFormatter,
                        description="Refocus a picture from its colour and depth passes with the "
                                    "MPI compositor. Input: a Blender multilayer EXR (Combined + "
-                                   "Depth), an mpib render, or colour plus --depth.")
-    f.add_argument("input", help="EXR with colour (and depth, unless --depth)")
-    f.add_argument("-o", "--output", required=True, help="output EXR (a PNG is written beside it)")
+                                   "Depth), an mpib render, or colour plus --depth; or a "
+                                   "photograph (JPEG, PNG, TIFF or EXR) with --disparity.",
+                       epilog=_REFOCUS_EPILOG)
+    f.add_argument("input", help="EXR with colour (and depth, unless --depth), or a photograph "
+                                 "(.jpg, .png, .tif) with --disparity")
+    f.add_argument("-o", "--output", required=True,
+                   help="output EXR (a PNG is written beside it); for a photograph also .jpg, "
+                        ".png or .tif, written in the input's encoding")
     f.add_argument("--depth", help="separate EXR holding the depth (Z, Depth.Z, Y or R)")
+    photo = f.add_argument_group(
+        "photographs", "A photograph with a disparity map, in the MPIB paper's convention: "
+        "--K and --disp-focus (or --focus-pixel). See the table below.")
+    photo.add_argument("--disparity", metavar="FILE",
+                       help="disparity map: 8/16-bit grey PNG/JPEG/TIFF (scaled to [0, 1]: "
+                            "v/255, v/65535) or float EXR/TIFF/.npy; 0 = infinitely far")
+    photo.add_argument("--K", type=_POSITIVE, metavar="K",
+                       help="the paper's blur parameter: blur radius in pixels per unit of the "
+                            "[0, 1] disparity, r = K |d - disp_focus| (A = K)")
+    photo.add_argument("--gamma", type=_POSITIVE, metavar="G",
+                       help="the paper's encoding: linear = value ** G (the paper uses 2.2); "
+                            "the output is written with ** (1/G)")
+    photo.add_argument("--encoding", choices=["srgb", "linear"],
+                       help="colour encoding of an 8/16-bit photograph (default srgb, the exact "
+                            "IEC 61966-2-1 curve; EXR and float TIFF are linear)")
+    photo.add_argument("--exr", metavar="PATH",
+                       help="also write the refocused linear EXR here")
+    photo.add_argument("--official-focus-range", action="store_true",
+                       help="as the official renderer's demo (increase_focus_range): subtract "
+                            "half a 1/32 bin from every defocus, r = K max(|d - d_f| - 1/64, 0)")
     f.add_argument("--background",
                    help="EXR of the scene rendered without the foreground: used in place of "
                         "the hidden-background fill where its alpha > 0.5")
@@ -521,6 +742,9 @@ def build_parser() -> argparse.ArgumentParser:
     g2.add_argument("--focus-depth", type=float, help="focus distance (scene units)")
     g2.add_argument("--focus-disparity", type=float, help="focus disparity (1/scene-unit)")
     g2.add_argument("--focus-pixel", type=_parse_pixel, help="focus on pixel X,Y")
+    g2.add_argument("--disp-focus", type=_FINITE, metavar="D",
+                    help="the paper's focus: the normalised disparity in focus, in [0, 1] "
+                         "(with --K)")
     lens = f.add_argument_group(
         "camera", "By default focus and aperture come from the input's header (a render made "
         "with the MPIB extension enabled, or an mpib render). Each option below replaces "

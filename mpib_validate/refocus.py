@@ -5,6 +5,10 @@ Blender multilayer file (``ViewLayer.Combined.*`` and ``ViewLayer.Depth.Z``), on
 this project's renders (``AllInFocus.*`` and ``Depth.Z``), or colour and depth as two
 files. The camera travels in the header (:mod:`mpib_validate.io.camera_header`).
 
+A photograph with a disparity map (``mpib refocus photo.jpg --disparity disp.png``, read
+by :mod:`mpib_validate.io.photo`) comes in as :class:`Passes` whose ``disparity`` is
+given directly instead of ``1/depth``; the rest is the same.
+
 A layered render (one view layer per depth group, ``mpib_group_<k>.Combined.*`` and
 ``mpib_group_<k>.Depth.Z``, see :mod:`mpib_validate.blender.layers`) is read by
 :func:`load_layered_passes` and refocused from its group layers
@@ -47,6 +51,17 @@ class Passes:
     #: nearest covering group's depth), for focusing and display
     groups: list | None = None
     notices: list = field(default_factory=list)  # one line each, e.g. clamped negatives
+    #: ``(H, W)`` disparity given directly (a photograph's disparity map, 0 = infinitely
+    #: far), used instead of ``1/depth``; ``depth`` then holds ``1/disparity`` for display
+    disparity: np.ndarray | None = None
+
+
+def passes_disparity(passes: Passes, far_limit: float = DEFAULT_FAR_LIMIT) -> np.ndarray:
+    """The disparity of the passes: the one given (:attr:`Passes.disparity`), else
+    :func:`~mpib_validate.layers.passes.depth_to_disparity` of the depth."""
+    if passes.disparity is not None:
+        return np.asarray(passes.disparity, np.float64)
+    return depth_to_disparity(passes.depth, far_limit, source=passes.depth_source)
 
 
 def view_layers(img) -> list[str]:
@@ -167,6 +182,25 @@ def load_passes(path, depth_path=None, view_layer: str | None = None) -> Passes:
                   rgba[..., 3].astype(np.float32), notices=[notice] if notice else [])
 
 
+def passes_from_photo(photo, disparity: np.ndarray, disparity_source: str) -> Passes:
+    """The :class:`Passes` of a photograph (:class:`mpib_validate.io.photo.Photo`: straight
+    linear colour, alpha or None) and its ``(H, W)`` disparity (0 = infinitely far; a
+    normalised map as it is, the paper's convention): colour premultiplied by the
+    alpha as passes hold it, ``depth = 1/disparity`` (inf at 0) for display, and the
+    disparity itself, which :func:`refocus` then uses."""
+    D = np.asarray(disparity, np.float64)
+    if D.shape != photo.rgb.shape[:2]:
+        raise PassError(f"sizes differ: the photograph '{photo.path}' is {photo.rgb.shape[1]}x"
+                        f"{photo.rgb.shape[0]}, the disparity '{disparity_source}' is "
+                        f"{D.shape[1]}x{D.shape[0]}")
+    depth = np.divide(1.0, D, out=np.full(D.shape, np.inf), where=D > 0)
+    colour = photo.rgb if photo.alpha is None else photo.rgb * photo.alpha[..., None]
+    alpha = None if photo.alpha is None else photo.alpha.astype(np.float32)
+    return Passes(colour.astype(np.float32), depth,
+                  f"{photo.path} ({photo.format}, {photo.encoding.describe()})",
+                  disparity_source, None, alpha, disparity=D)
+
+
 #: View layers named like this (``mpib_group_0`` farthest, see
 #: :mod:`mpib_validate.blender.layers`) are read as a layered input automatically.
 GROUP_LAYER = re.compile(r"^mpib_group_(\d+)$")
@@ -273,7 +307,7 @@ def refocus(passes: Passes, blur_parameter: float, focus_disparity: float,
         raise PassError(f"the focus disparity must be finite and >= 0, got {focus_disparity}")
     p = get_preset(preset)
     t0 = time.perf_counter()
-    D = depth_to_disparity(passes.depth, far_limit, source=passes.depth_source)
+    D = passes_disparity(passes, far_limit)
     first = second = None
     if progress is not None:
         first = lambda f: progress(0.5 * f)  # noqa: E731
@@ -326,7 +360,7 @@ def focus_from_pixel(passes: Passes, x: int, y: int, far_limit: float = DEFAULT_
     H, W = passes.depth.shape
     if not (0 <= x < W and 0 <= y < H):
         raise PassError(f"focus pixel ({x}, {y}) is outside the {W}x{H} image")
-    D = depth_to_disparity(passes.depth, far_limit, source=passes.depth_source)
+    D = passes_disparity(passes, far_limit)
     return float(np.median(D[max(0, y - 1):y + 2, max(0, x - 1):x + 2]))
 
 

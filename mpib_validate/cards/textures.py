@@ -36,6 +36,8 @@ from skimage import data as skdata
 from skimage import measure
 from skimage.transform import resize
 
+from mpib_validate.io.photo import srgb_to_linear  # the exact sRGB EOTF, one definition
+
 __all__ = [
     "SHIPPED_IMAGES",
     "PROCEDURAL_TEXTURES",
@@ -68,16 +70,6 @@ _MARGIN = 0.1  # masks: object kept this fraction of min(H, W) away from the bor
 
 
 # --------------------------------------------------------------------------- helpers
-def srgb_to_linear(v: np.ndarray) -> np.ndarray:
-    """Exact sRGB EOTF (IEC 61966-2-1): encoded value ``v`` in [0, 1] -> linear radiance.
-
-    ``L = v / 12.92`` for ``v <= 0.04045``, else ``L = ((v + 0.055) / 1.055) ** 2.4``.
-    So 0 -> 0, 0.5 -> 0.2140, 1 -> 1. Returns float64.
-    """
-    v = np.asarray(v, dtype=np.float64)
-    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
-
-
 def _out(a: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=np.float32)
 

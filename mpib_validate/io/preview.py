@@ -7,13 +7,13 @@ import os
 import numpy as np
 
 from mpib_validate.io.atomic import atomic_path
+from mpib_validate.io.photo import linear_to_srgb
 
 
 def srgb_encode(linear: np.ndarray) -> np.ndarray:
     """The sRGB OETF on values clipped to [0, 1]: ``12.92 v`` below 0.0031308, else
-    ``1.055 v^(1/2.4) - 0.055``."""
-    v = np.clip(np.nan_to_num(np.asarray(linear, np.float64)), 0.0, 1.0)
-    return np.where(v <= 0.0031308, 12.92 * v, 1.055 * np.power(v, 1.0 / 2.4) - 0.055)
+    ``1.055 v^(1/2.4) - 0.055`` (:func:`mpib_validate.io.photo.linear_to_srgb`)."""
+    return linear_to_srgb(linear)
 
 
 def to_uint8(linear_rgb: np.ndarray) -> np.ndarray:
