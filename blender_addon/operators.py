@@ -317,6 +317,18 @@ class MPIB_OT_refocus_file(_RefocusBase, bpy.types.Operator, ImportHelper):
         return self.run(context, self.filepath, name)
 
 
+def pixel_under_mouse(context, event):
+    """``(x, y)`` (from the top left) of the image pixel under the mouse in the Image
+    Editor, clamped to the image; None outside an Image Editor showing an image."""
+    space = context.space_data
+    if context.area is None or context.area.type != "IMAGE_EDITOR" or space.image is None:
+        return None
+    u, v = context.region.view2d.region_to_view(event.mouse_region_x, event.mouse_region_y)
+    W, H = space.image.size
+    return (min(max(int(u * W), 0), max(W - 1, 0)),
+            min(max(int((1.0 - v) * H), 0), max(H - 1, 0)))
+
+
 class MPIB_OT_pick_focus(bpy.types.Operator):
     """Focus on the pixel under the mouse (click in the Image Editor)"""
 
@@ -331,13 +343,9 @@ class MPIB_OT_pick_focus(bpy.types.Operator):
         return context.scene is not None
 
     def invoke(self, context, event):
-        space = context.space_data
-        if context.area is None or context.area.type != "IMAGE_EDITOR" or space.image is None:
-            return self.execute(context)
-        u, v = context.region.view2d.region_to_view(event.mouse_region_x, event.mouse_region_y)
-        W, H = space.image.size
-        self.x = min(max(int(u * W), 0), max(W - 1, 0))
-        self.y = min(max(int((1.0 - v) * H), 0), max(H - 1, 0))
+        xy = pixel_under_mouse(context, event)
+        if xy is not None:
+            self.x, self.y = xy
         return self.execute(context)
 
     def execute(self, context):

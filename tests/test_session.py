@@ -200,3 +200,20 @@ def test_cli_mpi_cache_must_be_a_folder(scene_file, tmp_path):
                      d / "in.exr")
     assert "--mpi-cache" in one_line_error(rc, err)
     assert not (tmp_path / "o.exr").exists()
+
+
+def test_the_focus_pull_bench_times_every_kind_of_render(scene_file):
+    """The bench worker on a small input (the numbers are the bench's, not checked here):
+    every kind is timed, the re-composites really use the cached MPI (the worker
+    asserts it), and the report has its table."""
+    from mpib_validate.bench.focuspull import focus_pull_timings, markdown
+
+    d, cam = scene_file
+    res = focus_pull_timings({"input": str(d / "in.exr"), "A": cam.blur_parameter,
+                              "d_f": cam.focus_disparity, "preset": "default", "repeats": 1})
+    kinds = [r["kind"] for r in res["rows"]]
+    assert kinds == ["full pipeline", "new focus (cached MPI)",
+                     "new f-stop (0.7 A, cached MPI)", "quarter-resolution preview"]
+    assert all(r["seconds"] > 0 and r["cpu_ratio"] > 0 for r in res["rows"])
+    text = "\n".join(markdown(res))
+    assert "| new focus (cached MPI) |" in text and "cached MPI" in text
