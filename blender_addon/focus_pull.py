@@ -229,13 +229,15 @@ class MPIB_OT_focus_pull(bpy.types.Operator):
         if context.area is None or context.area.type != "IMAGE_EDITOR":
             return self.execute(context)
         context.window_manager.modal_handler_add(self)
-        context.workspace.status_text_set("Focus pull: click to focus, right-click or Esc "
-                                          "to end")
+        if context.workspace is not None:
+            context.workspace.status_text_set("Focus pull: click to focus, right-click or "
+                                              "Esc to end")
         return {"RUNNING_MODAL"}
 
     def modal(self, context, event):
         if event.type in {"RIGHTMOUSE", "ESC"} and event.value == "PRESS":
-            context.workspace.status_text_set(None)
+            if context.workspace is not None:
+                context.workspace.status_text_set(None)
             return {"FINISHED"}
         if event.type == "LEFTMOUSE" and event.value == "PRESS":
             xy = operators.pixel_under_mouse(context, event)
