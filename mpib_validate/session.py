@@ -154,7 +154,7 @@ class RefocusSession:
     def __init__(self, passes: Passes, preset: str = "default",
                  far_limit: float = DEFAULT_FAR_LIMIT, background=None, stamps: tuple = (),
                  exact_aperture: bool = False,
-                 max_cache_bytes: int = DEFAULT_MAX_CACHE_BYTES, built: BuiltMPI | None = None):
+                 max_cache_bytes: int = DEFAULT_MAX_CACHE_BYTES):
         get_preset(preset)
         self.passes = passes
         self.preset = preset
@@ -163,7 +163,7 @@ class RefocusSession:
         self.stamps = tuple(stamps)
         self.exact_aperture = exact_aperture
         self.max_cache_bytes = int(max_cache_bytes)
-        self._built: BuiltMPI | None = built
+        self._built: BuiltMPI | None = None
         self._previews: dict[int, BuiltMPI] = {}
         self._lock = threading.Lock()
         self.builds = 0  # MPI builds this session has run
