@@ -87,11 +87,17 @@ class FocusPullJob:
         from mpib_validate.refocus import Cancelled
 
         try:
-            # the MPI (built on the first pull only) is not cancelled: a newer pull
-            # dragging the slider meanwhile would otherwise never let it finish
-            self.session.mpi_for(self.A)
-            self._progress(0.0)
-            self.preview = self.session.render(self.d_f, self.A, PREVIEW_SCALE, self._progress)
+            if not self.session.serves(self.A):
+                # first pull after a render: a preview from subsampled passes while the
+                # MPI is built (1/16 of its cost); the build itself is not cancelled, or
+                # a slider dragged meanwhile would never let it finish
+                self.preview = self.session.quick_preview(self.d_f, self.A, PREVIEW_SCALE,
+                                                          self._progress)
+                self.session.mpi_for(self.A)
+                self._progress(0.0)
+            else:
+                self.preview = self.session.render(self.d_f, self.A, PREVIEW_SCALE,
+                                                   self._progress)
             self.full = self.session.render(self.d_f, self.A, 1.0, self._progress)
         except Cancelled:
             self.cancelled = True

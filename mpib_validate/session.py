@@ -26,7 +26,9 @@ Preview (``scale = 1/s``, ``s`` an integer, 0.25 for a quarter of the resolution
 axis): the cached MPI area-averaged by ``s x s`` (:func:`downsample_mpi`, premultiplied
 colour and alpha, so a layer's coverage and energy are kept) and composited with
 ``A / s``: the blur radius in the coarse pixels is ``A |d - d_f| / s``. The coarse MPI is
-cached too (``1/s^2`` of the full one's memory).
+cached too (``1/s^2`` of the full one's memory). Before any MPI is built (the first
+pull after a render), :meth:`RefocusSession.quick_preview` builds a small one from the
+passes subsampled ``s x s`` instead, at ``1/s^2`` of the build's cost.
 
 Memory: the session keeps the passes (the caller's), one MPI (``16 B`` per stored layer
 pixel and channel group of four float32, see :attr:`RefocusSession.cache_bytes`;
@@ -106,6 +108,29 @@ def downsample_mpi(mpi: MPI, s: int) -> MPI:
               colour_max=mpi.colour_max)
     out.layers = [_downsample_layer(l, s, mpi.canvas_shape) for l in mpi.layers]
     return out
+
+
+def subsample_passes(passes: Passes, s: int) -> Passes:
+    """The passes at ``1/s`` resolution: the pixel at the centre of each ``s x s`` block
+    (colour, depth and film alpha of one pixel each: averaging depth across an edge would
+    invent surfaces in between), the frame first continued by edge replication to a
+    multiple of ``s``, so the result is ``ceil(H/s) x ceil(W/s)`` as :func:`downsample_mpi`
+    gives."""
+    from dataclasses import replace
+
+    H, W = passes.depth.shape
+    Hs, Ws = -(-H // s), -(-W // s)
+    rows = np.minimum(np.arange(Hs) * s + s // 2, H - 1)
+    cols = np.minimum(np.arange(Ws) * s + s // 2, W - 1)
+
+    def pick(a):
+        return None if a is None else np.ascontiguousarray(a[rows][:, cols])
+
+    groups = None
+    if passes.groups is not None:
+        groups = [tuple(pick(a) for a in g) for g in passes.groups]
+    return replace(passes, colour=pick(passes.colour), depth=pick(passes.depth),
+                   alpha=pick(passes.alpha), groups=groups, notices=[])
 
 
 def passes_digest(passes: Passes, background=None) -> str:
@@ -203,6 +228,11 @@ class RefocusSession:
             self._built = None
             self._previews.clear()
 
+    def serves(self, blur_parameter: float) -> bool:
+        """True when the kept MPI serves ``A`` (a render needs no build)."""
+        with self._lock:
+            return self._reusable(blur_parameter)
+
     def _reusable(self, A: float) -> bool:
         b = self._built
         if b is None:
@@ -270,6 +300,31 @@ class RefocusSession:
                      "composite_seconds": t2 - t1, "cache_bytes": self.cache_bytes})
         return RefocusResult(img, info)
 
+    def quick_preview(self, focus_disparity: float, blur_parameter: float, scale: float,
+                      progress=None) -> RefocusResult:
+        """A ``1/s`` preview before the MPI exists (the first focus pull after a render):
+        an MPI built from the passes subsampled at the centre of each ``s x s`` block
+        (:func:`subsample_passes`) for ``A / s``, about ``1/s^2`` of the full build's
+        cost; not kept. It shows the same focus as :meth:`render` at ``scale`` but from
+        coarser layers (edges placed to the block, thin structures may drop out); later
+        previews come from the kept MPI."""
+        _check_camera(blur_parameter, focus_disparity)
+        s = preview_factor(scale)
+        t0 = time.perf_counter()
+        small = subsample_passes(self.passes, s)
+        first = second = None
+        if progress is not None:
+            first = lambda f: progress(0.5 * f)  # noqa: E731
+            second = lambda f: progress(0.5 + 0.5 * f)  # noqa: E731
+        built = build_mpi(small, blur_parameter / s, self.preset, self.far_limit, first)
+        img = render_built(built, blur_parameter / s, focus_disparity, self.preset, second)
+        info = result_info(small, built, self.preset, blur_parameter, focus_disparity,
+                           time.perf_counter() - t0)
+        info.update({"mpi": "quick (subsampled passes)", "mpi_blur_parameter": blur_parameter,
+                     "scale": 1.0 / s, "composite_seconds": time.perf_counter() - t0,
+                     "cache_bytes": self.cache_bytes})
+        return RefocusResult(img, info)
+
     def focus_at_pixel(self, x: int, y: int) -> float:
         """Disparity to focus on pixel ``(x, y)`` (full-resolution, from the top left)."""
         from mpib_validate.refocus import focus_from_pixel
@@ -277,5 +332,5 @@ class RefocusSession:
         return focus_from_pixel(self.passes, x, y, self.far_limit)
 
 
-__all__ = ["RefocusSession", "downsample_mpi", "passes_digest", "file_stamps", "mpi_bytes",
-           "preview_factor", "REUSE_DOWN_TO"]
+__all__ = ["RefocusSession", "downsample_mpi", "subsample_passes", "passes_digest",
+           "file_stamps", "mpi_bytes", "preview_factor", "REUSE_DOWN_TO"]

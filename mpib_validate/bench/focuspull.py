@@ -1,10 +1,11 @@
 """Benchmark of a focus pull: a new focus or f-stop on a cached MPI, against the full pipeline.
 
 On the refocus suite's 1920x1080 input (EXR read beforehand), in one process, interleaved
-(fresh, cached, f-stop, preview; repeated): the full pipeline
+(fresh, cached, f-stop, preview, quick preview; repeated): the full pipeline
 (:func:`mpib_validate.refocus.refocus`: MPI build and Eq. 1), the re-composite of the
 cached MPI at a new focus (:class:`mpib_validate.session.RefocusSession`), at a narrower
-aperture (0.7 A, reusing the MPI), and the quarter-resolution preview. Each is timed by
+aperture (0.7 A, reusing the MPI), the quarter-resolution preview, and the quick preview
+of a first pull (before the MPI exists, from subsampled passes). Each is timed by
 wall clock and by CPU time (``time.process_time``, all threads of the process), and the
 ratios to the full pipeline are reported: on a shared machine the ratios and the CPU
 times hold, the wall times do not.
@@ -41,17 +42,19 @@ def focus_pull_timings(cfg) -> dict:
     _, build_w, build_c = _timed(lambda: session.render(d_f, A))
     _, first_prev_w, first_prev_c = _timed(lambda: session.render(d_f, A, 0.25))
     runs = {"full pipeline": [], "new focus (cached MPI)": [], "new f-stop (0.7 A, cached MPI)": [],
-            "quarter-resolution preview": []}
+            "quarter-resolution preview": [], "first preview (no MPI yet, subsampled passes)": []}
     steps = FOCUS_STEPS[:max(1, int(cfg.get("repeats", 3)))]
     for k, step in enumerate(steps):
         f = d_f * step
         kinds = (("full pipeline", lambda: refocus(passes, A, f, preset)),
                  ("new focus (cached MPI)", lambda: session.render(f, A)),
                  ("new f-stop (0.7 A, cached MPI)", lambda: session.render(f, 0.7 * A)),
-                 ("quarter-resolution preview", lambda: session.render(f, A, 0.25)))
+                 ("quarter-resolution preview", lambda: session.render(f, A, 0.25)),
+                 ("first preview (no MPI yet, subsampled passes)",
+                  lambda: session.quick_preview(f, A, 0.25)))
         for name, fn in kinds:
             res, w, c = _timed(fn)
-            if name != "full pipeline":
+            if "cached" in name or name.startswith("quarter"):
                 assert res.info["mpi"] == "cached", res.info["mpi"]
             runs[name].append((w, c))
     full_w = statistics.median(w for w, _ in runs["full pipeline"])
