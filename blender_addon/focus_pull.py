@@ -192,7 +192,7 @@ def pull(scene, blocking: bool | None = None) -> bool:
         sc = bpy.data.scenes.get(scene_name)
         if State.job is not job or sc is None:
             return None  # superseded, or the scene is gone
-        if _present(sc, job, H, W) and job.done:
+        if _present(sc, job, H, W):  # the full result (or an error) is shown: done
             State.job = None
             return None
         return 0.03
