@@ -93,6 +93,9 @@ def on_render_post(scene, *_):
 
 @persistent
 def on_render_complete(scene, *_):
+    from .focus_pull import drop_session
+
+    drop_session()  # the kept MPI belongs to the previous render
     try:
         scene.mpib.last_passes = save_render_passes(scene)
     except (RuntimeError, OSError) as exc:

@@ -317,6 +317,34 @@ class MPIB_OT_refocus_file(_RefocusBase, bpy.types.Operator, ImportHelper):
         return self.run(context, self.filepath, name)
 
 
+def pixel_under_mouse(context, event):
+    """``(x, y)`` (from the top left) of the image pixel under the mouse in an Image
+    Editor's main region (found from the window coordinates, so it works wherever the
+    operator was started, e.g. from the sidebar); None when the mouse is not over an
+    image there."""
+    def inside(region):
+        return (0 <= event.mouse_x - region.x < region.width
+                and 0 <= event.mouse_y - region.y < region.height)
+
+    screen = context.screen
+    for area in (screen.areas if screen is not None else ()):
+        if area.type != "IMAGE_EDITOR" or area.spaces.active.image is None:
+            continue
+        # sidebar, header and toolbar may overlap the main region: a click there is theirs
+        if any(r.type != "WINDOW" and r.width > 1 and inside(r) for r in area.regions):
+            return None
+        for region in area.regions:
+            if region.type != "WINDOW" or not inside(region):
+                continue
+            u, v = region.view2d.region_to_view(event.mouse_x - region.x,
+                                                event.mouse_y - region.y)
+            if not (0.0 <= u < 1.0 and 0.0 <= v < 1.0):
+                return None
+            W, H = area.spaces.active.image.size
+            return (min(int(u * W), max(W - 1, 0)), min(int((1.0 - v) * H), max(H - 1, 0)))
+    return None
+
+
 class MPIB_OT_pick_focus(bpy.types.Operator):
     """Focus on the pixel under the mouse (click in the Image Editor)"""
 
@@ -331,13 +359,9 @@ class MPIB_OT_pick_focus(bpy.types.Operator):
         return context.scene is not None
 
     def invoke(self, context, event):
-        space = context.space_data
-        if context.area is None or context.area.type != "IMAGE_EDITOR" or space.image is None:
-            return self.execute(context)
-        u, v = context.region.view2d.region_to_view(event.mouse_region_x, event.mouse_region_y)
-        W, H = space.image.size
-        self.x = min(max(int(u * W), 0), max(W - 1, 0))
-        self.y = min(max(int((1.0 - v) * H), 0), max(H - 1, 0))
+        xy = pixel_under_mouse(context, event)
+        if xy is not None:
+            self.x, self.y = xy
         return self.execute(context)
 
     def execute(self, context):

@@ -15,6 +15,13 @@ def _preset_items():
 PRESET_ITEMS = _preset_items()
 
 
+def _live(settings, context):
+    """A changed focus distance or f-stop: refocus at once (preview, then full)."""
+    from . import focus_pull
+
+    focus_pull.on_setting_changed(settings, context)
+
+
 class MPIB_Settings(bpy.types.PropertyGroup):
     use_camera_focus: BoolProperty(
         name="Camera Focus", default=True,
@@ -24,13 +31,17 @@ class MPIB_Settings(bpy.types.PropertyGroup):
         items=(("DISTANCE", "Distance", "Focus at a distance from the camera"),
                ("PIXEL", "Pixel", "Focus on what a pixel of the image shows")))
     focus_distance: FloatProperty(name="Focus Distance", default=10.0, min=1e-4,
-                                  subtype="DISTANCE", unit="LENGTH")
+                                  subtype="DISTANCE", unit="LENGTH", update=_live)
     focus_pixel: IntVectorProperty(name="Focus Pixel", size=2, default=(0, 0), min=0,
                                    description="Pixel (x, y from the top left) to focus on")
     use_camera_fstop: BoolProperty(name="Camera F-Stop", default=True,
                                    description="Use the scene camera's f-stop")
     fstop: FloatProperty(name="F-Stop", default=2.8, min=0.01, soft_max=64.0,
-                         description="Aperture f-number (smaller = more blur)")
+                         description="Aperture f-number (smaller = more blur)", update=_live)
+    live_focus: BoolProperty(
+        name="Live Focus Pull", default=True,
+        description="Changing the focus distance or f-stop refocuses the last render at once "
+                    "(a quarter-resolution preview, then the full result)")
     preset: EnumProperty(name="Quality", items=PRESET_ITEMS, default="default")
     save_exr: BoolProperty(name="Save EXR", default=False,
                            description="Also save the result as EXR beside the render output")

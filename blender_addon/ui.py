@@ -20,6 +20,9 @@ def draw_settings(layout, context):
     else:
         sub.prop(s, "focus_pixel")
         sub.operator("mpib.pick_focus", icon="EYEDROPPER")
+    row = box.row(align=True)
+    row.operator("mpib.focus_pull", icon="RESTRICT_SELECT_OFF")
+    row.prop(s, "live_focus", text="Live")
     box = layout.box()
     box.label(text="Aperture")
     box.prop(s, "use_camera_fstop")

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -307,6 +308,21 @@ def _progress_bar(enabled: bool, desc: str, total: float, unit: str):
     return tqdm(total=total, desc=desc, unit=unit, leave=False, disable=None)
 
 
+def _check_cache_dir(path: str, inputs) -> None:
+    """``--mpi-cache DIR``: a folder (made if missing) that is writable and not an input."""
+    d = Path(path)
+    if d.exists() and not d.is_dir():
+        raise CliError(f"--mpi-cache '{path}' is not a directory")
+    for p in inputs:
+        if Path(p).resolve() == d.resolve():
+            raise CliError(f"--mpi-cache '{path}' is an input file")
+    parent = d
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+        raise CliError(f"--mpi-cache '{path}': cannot write in '{parent}'")
+
+
 class _TableFormatter(argparse.HelpFormatter):
     """Help text wrapped as usual, except text with line breaks (a table), kept as is."""
 
@@ -347,8 +363,17 @@ def _plan_and_refocus(args, passes, A: float, d_f: float, D, background=None):
             bar.update(max(0, int(round(100 * fraction)) - bar.n))
 
     try:
-        result = refocus(passes, A, d_f, args.preset, args.far_limit, background=background,
-                         progress=progress)
+        if getattr(args, "mpi_cache", None) is None:
+            result = refocus(passes, A, d_f, args.preset, args.far_limit,
+                             background=background, progress=progress)
+        else:
+            from mpib_validate.layers.cache import refocus_cached
+
+            result, reused, entry = refocus_cached(passes, A, d_f, args.mpi_cache, args.preset,
+                                                   args.far_limit, background, progress)
+            print(f"{'reused the cached MPI' if reused else 'built the MPI and cached it as'} "
+                  f"{entry}" + (" (same inputs, preset, far limit and aperture)" if reused
+                                else ""), flush=True)
         if bar is not None:
             bar.refresh()
     finally:
@@ -420,6 +445,8 @@ def _refocus_photo(args) -> int:
     inputs = [args.input] + [p for p in (args.disparity, args.depth) if p]
     outputs = _photo_outputs(args)
     check_outputs(outputs, inputs)
+    if args.mpi_cache is not None:
+        _check_cache_dir(args.mpi_cache, inputs)
     if args.K is not None and args.blur_parameter is not None:
         raise CliError("--K and --blur-parameter both give the blur: give one")
     lens = [o for o, v in (("--fstop", args.fstop), ("--focal-mm", args.focal_mm),
@@ -525,6 +552,8 @@ def cmd_refocus(args) -> int:
                            f"FILE); '{args.input}' is read as rendered EXR passes")
     inputs = [args.input] + [p for p in (args.depth, args.background) if p]
     check_outputs(_outputs(args.output, not args.no_preview), inputs)
+    if args.mpi_cache is not None:
+        _check_cache_dir(args.mpi_cache, inputs)
     if args.layered and (args.depth or args.background or args.view_layer):
         raise CliError("--layered takes colour and depth from the input's view layers: "
                        "drop --depth, --background and --view-layer")
@@ -775,6 +804,10 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--view-layer", metavar="NAME",
                    help="the Blender view layer to refocus, when the EXR holds several")
     f.add_argument("--no-preview", action="store_true", help="do not write the PNG preview")
+    f.add_argument("--mpi-cache", metavar="DIR",
+                   help="keep the MPI in DIR and reuse it when the input pixels, preset, far "
+                        "limit, background and aperture are unchanged (a new focus then only "
+                        "re-composites; the output is the same as without the cache)")
     f.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     _add_memory_option(f)
     f.set_defaults(func=cmd_refocus)

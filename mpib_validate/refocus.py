@@ -289,29 +289,36 @@ def read_background(path, shape, far_limit: float = DEFAULT_FAR_LIMIT):
     return rgba, rgba[..., 3] > 0.5, disparity
 
 
-def refocus(passes: Passes, blur_parameter: float, focus_disparity: float,
-            preset: str = "default", far_limit: float = DEFAULT_FAR_LIMIT,
-            progress=None, background=None) -> RefocusResult:
-    """Build the MPI from the passes and render it with the preset's settings.
-
-    ``background``: optional ``(colour, valid)`` of what lies behind the foreground (see
-    :func:`read_background`); it replaces the hidden-background fill where valid.
-
-    ``progress(fraction)``, if given, is called as the work goes on (layers up to 0.5,
-    then compositing); raising from it stops the work, e.g. :class:`Cancelled`.
-    """
+def _check_camera(blur_parameter: float, focus_disparity: float) -> None:
     if not (blur_parameter > 0) or not math.isfinite(blur_parameter):
         raise PassError(f"the blur parameter must be finite and > 0 (a zero aperture has no "
                         f"defocus), got {blur_parameter}")
     if not (focus_disparity >= 0) or not math.isfinite(focus_disparity):
         raise PassError(f"the focus disparity must be finite and >= 0, got {focus_disparity}")
+
+
+@dataclass
+class BuiltMPI:
+    """What :func:`build_mpi` makes of the passes: the MPI, whether the output is opaque
+    (no film channel), the disparities the input holds (for the largest blur radius),
+    the builder's info and the ``A`` it was built for. None of it depends on the focus."""
+
+    mpi: object
+    opaque: bool
+    disparity: np.ndarray
+    info: object
+    blur_parameter: float
+
+
+def build_mpi(passes: Passes, blur_parameter: float, preset: str = "default",
+              far_limit: float = DEFAULT_FAR_LIMIT, progress=None,
+              background=None) -> BuiltMPI:
+    """The focus-independent half of :func:`refocus`: the MPI of the passes for the blur
+    parameter ``A`` (px per unit disparity; it sets the plane spacing ``2 tol / A``, the
+    edge threshold and how far behind each edge the background is filled)."""
+    _check_camera(blur_parameter, 0.0)
     p = get_preset(preset)
-    t0 = time.perf_counter()
     D = passes_disparity(passes, far_limit)
-    first = second = None
-    if progress is not None:
-        first = lambda f: progress(0.5 * f)  # noqa: E731
-        second = lambda f: progress(0.5 + 0.5 * f)  # noqa: E731
     # The film alpha travels as a fourth colour channel (premultiplied like the colour),
     # so the output's alpha is its normalised blur: what the refocused view covers. An
     # opaque input needs no such channel: the normalised blur of ones is one wherever
@@ -325,7 +332,7 @@ def refocus(passes: Passes, blur_parameter: float, focus_disparity: float,
         # layered input: its own film channel unless the farthest group is opaque
         groups = [(c, a, group_disparity(z, a, far_limit, f"{passes.depth_source} group {k}"))
                   for k, (c, a, z) in enumerate(passes.groups)]
-        mpi, info = layers_from_layered_passes(groups, blur_parameter, p.passes, progress=first)
+        mpi, info = layers_from_layered_passes(groups, blur_parameter, p.passes, progress=progress)
         opaque = mpi.channels == 4
         D = np.concatenate([g[2][g[1] > 0] for g in groups] + [D.ravel()])
     else:
@@ -333,26 +340,66 @@ def refocus(passes: Passes, blur_parameter: float, focus_disparity: float,
         colour = passes.colour if opaque else np.concatenate(
             [passes.colour, np.clip(film, 0.0, 1.0)[..., None]], axis=-1)
         mpi, info = layers_from_passes(colour, D, blur_parameter, p.passes,
-                                       background=background, progress=first)
-    img = render_subapertures(mpi, blur_parameter, focus_disparity, p.subapertures,
-                              p.composite, progress=second)
+                                       background=background, progress=progress)
+    return BuiltMPI(mpi, opaque, D, info, float(blur_parameter))
+
+
+def render_built(built: BuiltMPI, blur_parameter: float, focus_disparity: float,
+                 preset: str = "default", progress=None) -> np.ndarray:
+    """The focus-dependent half of :func:`refocus`: Eq. 1 (or the preset's middle
+    setting) on ``built.mpi`` at ``A``, ``d_f``, as ``(H, W, 4)`` float32 straight colour
+    and alpha (see :class:`RefocusResult`). ``A`` is in pixels of ``built.mpi``."""
+    p = get_preset(preset)
+    img = render_subapertures(built.mpi, blur_parameter, focus_disparity, p.subapertures,
+                              p.composite, progress=progress)
     covered = img[..., 3] > 0
-    alpha = covered.astype(np.float32) if opaque else np.where(covered, img[..., 4], 0.0)
+    alpha = covered.astype(np.float32) if built.opaque else np.where(covered, img[..., 4], 0.0)
     out = np.zeros(img.shape[:2] + (4,), np.float32)
     # straight colour: the normalised (premultiplied) colour over the normalised alpha
     np.divide(img[..., :3], alpha[..., None], out=out[..., :3], where=alpha[..., None] > 0)
     out[..., 3] = alpha
-    img = out
-    seconds = time.perf_counter() - t0
+    return out
+
+
+def result_info(passes: Passes, built: BuiltMPI, preset: str, blur_parameter: float,
+                focus_disparity: float, seconds: float) -> dict:
+    """The ``info`` of a :class:`RefocusResult` (written into the output's header)."""
+    D, info = built.disparity, built.info
     radius = blur_parameter * max(abs(float(D.max()) - focus_disparity),
                                   abs(float(D.min()) - focus_disparity))
-    return RefocusResult(img, {
+    return {
         "preset": preset, "planes": info.planes, "largest_radius_px": radius,
         "fill_fraction": info.fill_fraction, "edge_fraction": info.edge_fraction,
         "blur_parameter": blur_parameter, "focus_disparity": focus_disparity,
         "seconds": seconds, "layers_seconds": info.seconds,
         "colour": passes.colour_source, "depth": passes.depth_source,
-        "groups": 1 if passes.groups is None else len(passes.groups)})
+        "groups": 1 if passes.groups is None else len(passes.groups)}
+
+
+def refocus(passes: Passes, blur_parameter: float, focus_disparity: float,
+            preset: str = "default", far_limit: float = DEFAULT_FAR_LIMIT,
+            progress=None, background=None) -> RefocusResult:
+    """Build the MPI from the passes (:func:`build_mpi`) and render it with the preset's
+    settings (:func:`render_built`). To refocus one picture many times, keep the MPI:
+    :class:`mpib_validate.session.RefocusSession`.
+
+    ``background``: optional ``(colour, valid)`` of what lies behind the foreground (see
+    :func:`read_background`); it replaces the hidden-background fill where valid.
+
+    ``progress(fraction)``, if given, is called as the work goes on (layers up to 0.5,
+    then compositing); raising from it stops the work, e.g. :class:`Cancelled`.
+    """
+    _check_camera(blur_parameter, focus_disparity)
+    get_preset(preset)
+    t0 = time.perf_counter()
+    first = second = None
+    if progress is not None:
+        first = lambda f: progress(0.5 * f)  # noqa: E731
+        second = lambda f: progress(0.5 + 0.5 * f)  # noqa: E731
+    built = build_mpi(passes, blur_parameter, preset, far_limit, first, background)
+    img = render_built(built, blur_parameter, focus_disparity, preset, second)
+    return RefocusResult(img, result_info(passes, built, preset, blur_parameter,
+                                          focus_disparity, time.perf_counter() - t0))
 
 
 def focus_from_pixel(passes: Passes, x: int, y: int, far_limit: float = DEFAULT_FAR_LIMIT) -> float:

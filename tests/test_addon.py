@@ -42,7 +42,7 @@ def session(tmp_path_factory):
 def test_installs_registers_and_bundles_its_wheel(session):
     out, work = session
     assert out["install"] == ["FINISHED"] and out["addon_enabled"]
-    assert out["operators"] == ["refocus_render", "refocus_file", "pick_focus"]
+    assert out["operators"] == ["refocus_render", "refocus_file", "pick_focus", "focus_pull"]
     assert out["panels"] == ["MPIB_PT_image", "MPIB_PT_compositor"]
     # the compositor comes from the zip's own wheel, installed into Blender's extension
     # site-packages, not from the test environment
@@ -84,6 +84,28 @@ def test_bad_input_gets_a_report(session, case, text):
         assert msg.startswith("error:")
         assert out["calls"][case][0].startswith("RuntimeError: Error:"), out["calls"][case]
         assert "Traceback" not in out["calls"][case][0]
+
+
+def test_focus_pull_shows_a_preview_then_the_full_result_from_the_kept_mpi(session):
+    """Clicking a pixel (the operator's execute with the pixel) or moving the focus
+    slider refocuses the last render: a quarter-resolution preview (64x48 -> 16x12), then
+    the full result, which is a fresh refocus at that focus to float rounding (the same
+    function on the same layers; the image stores float32). The MPI is built once per
+    render: later pulls reuse it, a new render drops it."""
+    out, _ = session
+    p = out["focus_pull"]
+    for case in ("click_card", "click_wall", "slider", "new_render"):
+        r = p[case]
+        assert r["result"] in (["FINISHED"], "update"), (case, r)
+        assert r["preview_shape"] == [12, 16] and r["image_shape"] == [48, 64, 4], (case, r)
+        assert r["max_diff_to_fresh"] <= 1e-6, (case, r)
+    # focusing on the card instead of the wall changes the picture: the card turns sharp
+    # and the wall's checker (0.3 against 0.9 in green) blurs by 4.4 px instead
+    assert p["click_card"]["changed"] > 0.1
+    # one build per render: the later pulls at the same aperture re-composite only
+    assert [p[c]["builds"] for c in ("click_card", "click_wall", "slider")] == [1, 1, 1]
+    assert p["click_wall"]["mpi"] == "cached" and p["slider"]["mpi"] == "cached"
+    assert p["after_render_dropped"] and p["new_session"] and p["new_render"]["builds"] == 1
 
 
 def test_unregister_leaves_nothing_behind(session):

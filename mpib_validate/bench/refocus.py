@@ -6,7 +6,8 @@ the MPI path with the hidden-background fill (adaptive planes, and the paper's 3
 uniform planes), without the fill (visible-only layers), each quality preset, the
 classical baselines (RVR, SteReFo, scatter, gather), and exact layers taken from the
 cards for reference. A second part times ``mpib refocus`` end to end at 1920x1080
-(EXR read and write included) in a subprocess, with its peak memory.
+(EXR read and write included) in a subprocess, with its peak memory, and a focus pull
+on the cached MPI (:mod:`mpib_validate.bench.focuspull`).
 """
 
 from __future__ import annotations
@@ -155,8 +156,12 @@ def run(out: Path, quick: bool = True, executor=None) -> dict:
             cfg = {**cam, "input": str(inp), "output": str(Path(tmp) / f"{preset}.exr"),
                    "preset": preset}
             hd[preset] = run_worker("mpib_validate.bench.refocus", cfg)
+        print("bench refocus: focus pull on a cached MPI at 1920x1080 ...", flush=True)
+        pull = run_worker("mpib_validate.bench.focuspull",
+                          {**cam, "input": str(inp), "preset": "default",
+                           "repeats": 3 if quick else 5})
     result = {"suite": "refocus", "quick": quick, "size": size, "reference_spp": ref_spp,
-              "machine": machine_info(), "rows": rows, "hd": hd}
+              "machine": machine_info(), "rows": rows, "hd": hd, "focus_pull": pull}
     result["summary"] = _summarise(result)
     return finish(out, "refocus", result, _markdown)
 
@@ -193,6 +198,10 @@ def _summarise(result):
         if "seconds" in v:
             heads.append(f"mpib refocus --preset {preset} at 1920x1080 (EXR in and out): "
                          f"{v['seconds']:.2f} s, peak {v['peak_rss_mb']:.0f} MB, {v['planes']} planes.")
+    for r in result.get("focus_pull", {}).get("rows", []):
+        if r["kind"] != "full pipeline":
+            heads.append(f"{r['kind']} at 1920x1080 (default): {r['seconds']:.3f} s, "
+                         f"{r['cpu_ratio']:.3f} of the full pipeline's CPU time.")
     return {"headlines": heads, "tables": tables}
 
 
@@ -223,6 +232,10 @@ def _markdown(result) -> str:
     for k, v in result["hd"].items():
         lines.append(f"| {k} | {_fmt(v.get('seconds'))} | {_fmt(v.get('peak_rss_mb'), 0)} | "
                      f"{v.get('planes', v.get('error', '-'))} |")
+    if "focus_pull" in result:
+        from mpib_validate.bench.focuspull import markdown
+
+        lines += [""] + markdown(result["focus_pull"])
     return "\n".join(lines) + "\n"
 
 

@@ -493,10 +493,13 @@ def mpi_to_scene(mpi: MPI, camera) -> Scene:
 
 
 def save_mpi(mpi: MPI, path) -> None:
-    """Write an MPI to a ``.npz`` file (atomically): sizes, disparities, boxes, layers."""
+    """Write an MPI to a ``.npz`` file (atomically): sizes, disparities, boxes, layers and
+    the colour bound (:attr:`MPI.colour_max`) when known."""
     from mpib_validate.io.atomic import atomic_path
 
     arrays = {"meta": np.array([mpi.height, mpi.width, mpi.margin, len(mpi.layers)], np.int64)}
+    if mpi.colour_max is not None:
+        arrays["colour_max"] = np.asarray(mpi.colour_max, np.float32)
     for i, l in enumerate(mpi.layers):
         arrays[f"rgba{i}"] = l.rgba
         arrays[f"where{i}"] = np.array([l.disparity, l.y0, l.x0,
@@ -511,6 +514,8 @@ def load_mpi(path) -> MPI:
     with np.load(path) as z:
         h, w, margin, n = (int(v) for v in z["meta"])
         mpi = MPI(h, w, margin)
+        if "colour_max" in z.files:
+            mpi.colour_max = z["colour_max"]
         for i in range(n):
             where = z[f"where{i}"]
             d, y0, x0 = where[:3]

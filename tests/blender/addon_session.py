@@ -89,6 +89,14 @@ def render_to(path, sc):
     return path
 
 
+def call(op, **kw):
+    """Run an operator; an ERROR report reaches a Python caller as RuntimeError."""
+    try:
+        return sorted(op(**kw))
+    except RuntimeError as exc:
+        return ["RuntimeError: " + str(exc).strip()]
+
+
 # -- install ---------------------------------------------------------------------------
 prefs = bpy.context.preferences
 repo_dir = tempfile.mkdtemp(dir=work)
@@ -98,7 +106,8 @@ res = bpy.ops.extensions.package_install_files(filepath=zip_path, repo="mpib_tes
                                                enable_on_install=True)
 out["install"] = sorted(res)
 out["addon_enabled"] = [a.module for a in prefs.addons if a.module.endswith("mpib_refocus")]
-out["operators"] = [n for n in ("refocus_render", "refocus_file", "pick_focus") if hasattr(bpy.ops.mpib, n)]
+out["operators"] = [n for n in ("refocus_render", "refocus_file", "pick_focus", "focus_pull")
+                    if hasattr(bpy.ops.mpib, n)]
 out["panels"] = [c for c in ("MPIB_PT_image", "MPIB_PT_compositor") if hasattr(bpy.types, c)]
 import mpib_validate  # noqa: E402  (the add-on's bundled copy comes first on sys.path)
 
@@ -143,6 +152,62 @@ np.save(os.path.join(work, "sharp.npy"), sharp)
 np.save(os.path.join(work, "refocused.npy"), refocused)
 np.save(os.path.join(work, "dof.npy"), ref)
 
+# -- focus pull: a preview, then the full result from the kept MPI; a new render drops it ----
+fp = sys.modules[out["addon_enabled"][0] + ".focus_pull"]
+sc.camera.data.dof.use_dof = False  # sharp passes again
+sc.cycles.samples = 16
+bpy.ops.render.render(write_still=False)
+call(bpy.ops.mpib.refocus_render)
+
+
+def shown():
+    im = bpy.data.images.get("Render Result (refocused)")
+    return np.array(im.pixels[:], np.float32).reshape(im.size[1], im.size[0], 4)[::-1]
+
+
+def fresh_refocus(sc, pixel=None):
+    """What a plain refocus of the kept passes gives at the panel's settings (or at a
+    focus pixel): no session, no cache."""
+    from mpib_validate.camera import blender_camera
+    from mpib_validate.refocus import focus_from_pixel, load_passes, refocus
+
+    request = ops_mod.prepare(sc, sc.mpib.last_passes, "fresh", save=None)
+    cam = blender_camera(**request["camera"])
+    passes = load_passes(sc.mpib.last_passes)
+    d_f = focus_from_pixel(passes, *pixel) if pixel else cam.focus_disparity
+    return refocus(passes, cam.blur_parameter, d_f, sc.mpib.preset).image
+
+
+def pull_record(result, pixel=None):
+    sess = fp.State.session
+    return {"result": result, "preview_shape": list(fp.State.last_preview_shape or ()),
+            "image_shape": list(shown().shape),
+            "max_diff_to_fresh": float(np.abs(shown() - fresh_refocus(sc, pixel)).max()),
+            "builds": None if sess is None else sess.builds,
+            "mpi": (fp.State.last_full_info or {}).get("mpi"), "message": sc.mpib.last_message}
+
+
+camera_focus = shown().copy()  # Refocus Last Render at the camera's focus (the wall, 6 m)
+pulls = {}
+# the card at 1.5 m covers x = 26..56 at y = 24: focus on it
+pulls["click_card"] = pull_record(call(bpy.ops.mpib.focus_pull, x=41, y=24), (41, 24))
+pulls["click_card"]["changed"] = float(np.abs(shown() - camera_focus).max())
+pulls["click_wall"] = pull_record(call(bpy.ops.mpib.focus_pull, x=3, y=3), (3, 3))
+sc.mpib.use_camera_focus = False
+sc.mpib.focus_mode = "DISTANCE"
+sc.mpib.focus_distance = 3.0  # the slider: its update callback pulls the focus
+pulls["slider"] = pull_record("update")
+session_before = fp.State.session  # kept referenced: a new one cannot take its place
+bpy.ops.render.render(write_still=False)  # a new render: the kept MPI is dropped
+pulls["after_render_dropped"] = fp.State.session is None
+bpy.data.objects["card"].location.x += 0.1  # the card moves; render and pull again
+bpy.ops.render.render(write_still=False)
+pulls["new_render"] = pull_record(call(bpy.ops.mpib.focus_pull, x=48, y=24), (48, 24))
+pulls["new_session"] = fp.State.session is not session_before
+del session_before
+out["focus_pull"] = pulls
+sc.mpib.use_camera_focus = True
+
 # -- animation: each written frame gets a refocused sibling, focus from the camera's keys ---
 sc = cycles_scene(dof=True, spp=4)
 cam = sc.camera.data
@@ -171,14 +236,6 @@ sc.mpib.refocus_animation = False
 
 # -- bad inputs ----------------------------------------------------------------------------
 reports = {}
-
-
-def call(op, **kw):
-    """Run an operator; an ERROR report reaches a Python caller as RuntimeError."""
-    try:
-        return sorted(op(**kw))
-    except RuntimeError as exc:
-        return ["RuntimeError: " + str(exc).strip()]
 
 
 calls = {}
