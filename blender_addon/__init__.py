@@ -6,9 +6,9 @@ the last render, calibrates focus and aperture from the scene camera, runs
 ``mpib_validate.refocus`` and shows the result as a float image.
 """
 
-from . import handlers, nodegroup_ops, operators, properties, ui
+from . import handlers, layered_ops, nodegroup_ops, operators, properties, ui
 
-_modules = (properties, operators, nodegroup_ops, ui, handlers)
+_modules = (properties, operators, layered_ops, nodegroup_ops, ui, handlers)
 
 
 def register():
