@@ -109,17 +109,20 @@ def _set_quietly(scene, value: bool):
         _busy = False
 
 
-class MPIB_OT_setup_layers(bpy.types.Operator):
-    """Split the scene into depth groups and set up one view layer per group (again, if
-    they are there: after moving objects or rendering, the groups follow)"""
-
-    bl_idname = "mpib.setup_layers"
-    bl_label = "Update Depth Groups"
+class _SceneOperator:
     bl_options = {"REGISTER", "UNDO"}
 
     @classmethod
     def poll(cls, context):
         return context.scene is not None
+
+
+class MPIB_OT_setup_layers(_SceneOperator, bpy.types.Operator):
+    """Split the scene into depth groups and set up one view layer per group (again, if
+    they are there: after moving objects or rendering, the groups follow)"""
+
+    bl_idname = "mpib.setup_layers"
+    bl_label = "Update Depth Groups"
 
     def execute(self, context):
         scene = context.scene
@@ -134,16 +137,11 @@ class MPIB_OT_setup_layers(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class MPIB_OT_remove_layers(bpy.types.Operator):
+class MPIB_OT_remove_layers(_SceneOperator, bpy.types.Operator):
     """Remove the depth-group view layers and collections (the artist's are kept)"""
 
     bl_idname = "mpib.remove_layers"
     bl_label = "Remove Depth Groups"
-    bl_options = {"REGISTER", "UNDO"}
-
-    @classmethod
-    def poll(cls, context):
-        return context.scene is not None
 
     def execute(self, context):
         scene = context.scene

@@ -43,6 +43,15 @@ def session(tmp_path_factory):
     return json.loads(lines[-1][7:]), work
 
 
+def card_edge_mask(depth):
+    """The occlusion-boundary mask of the session's scene (PSNR_ob) from its Z pass."""
+    from mpib_validate.metrics import boundaries_from_disparity, occlusion_mask
+
+    A = 0.1 / 2.0 * 100.0 / 36.0 * 64  # R f_px, as the session's camera
+    D = np.where(depth < 1e9, 1.0 / depth, 0.0)
+    return occlusion_mask(boundaries_from_disparity(D, 1.0 / A), D, A, 1.0 / 6.0)
+
+
 def test_installs_registers_and_bundles_its_wheel(session):
     out, work = session
     assert out["install"] == ["FINISHED"] and out["addon_enabled"]
@@ -102,16 +111,14 @@ def test_beats_the_defocus_node_at_occlusion_boundaries(session):
     mask (from the Z pass). Measured at 64x48: refocus PSNR_ob 35.3 dB, Defocus node
     19.1 dB (a 16.1 dB margin); we require the refocus ahead by 10 dB."""
     from mpib_validate.compositor.defocus_node import defocus
-    from mpib_validate.metrics import boundaries_from_disparity, occlusion_mask, psnr
+    from mpib_validate.metrics import psnr
 
     out, work = session
     sharp, refocused, dof, depth = (np.load(work / f"{n}.npy")
                                     for n in ("sharp", "refocused", "dof", "depth"))
     lens = {"lens_mm": 100.0, "sensor_width_mm": 36.0, "fstop": 1.0, "focus_distance": 6.0}
     node, _ = defocus(sharp, depth, lens, timing=False)
-    A = 0.1 / 2.0 * 100.0 / 36.0 * 64  # R f_px, as the session's camera
-    D = np.where(depth < 1e9, 1.0 / depth, 0.0)
-    mask = occlusion_mask(boundaries_from_disparity(D, 1.0 / A), D, A, 1.0 / 6.0)
+    mask = card_edge_mask(depth)
     ref = np.clip(dof, 0, 1)
     ours = psnr(ref, np.clip(refocused, 0, 1), mask)
     theirs = psnr(ref, np.clip(node, 0, 1), mask)
@@ -178,14 +185,12 @@ def test_layered_refocus_is_closer_to_cycles_at_the_card_edge(session):
     """The same scene and camera as the single-pass refocus: the layered render has the
     wall behind the card (rendered, not filled) and the card's own coverage, so it is
     closer to Cycles' depth of field inside the occlusion-boundary mask."""
-    from mpib_validate.metrics import boundaries_from_disparity, occlusion_mask, psnr
+    from mpib_validate.metrics import psnr
 
     _, work = session
     refocused, layered, dof, depth = (np.load(work / f"{n}.npy")
                                       for n in ("refocused", "layered", "dof", "depth"))
-    A = 0.1 / 2.0 * 100.0 / 36.0 * 64  # R f_px, as the session's camera
-    D = np.where(depth < 1e9, 1.0 / depth, 0.0)
-    mask = occlusion_mask(boundaries_from_disparity(D, 1.0 / A), D, A, 1.0 / 6.0)
+    mask = card_edge_mask(depth)
     ref = np.clip(dof, 0, 1)
     single = psnr(ref, np.clip(refocused, 0, 1), mask)
     ours = psnr(ref, np.clip(layered, 0, 1), mask)

@@ -367,6 +367,26 @@ def test_split_groups_at_the_largest_gaps_and_a_ground_plane_goes_farthest():
     assert blender_layers.split_groups([(0.2, 0.3), (0.25, 0.4)]) == [[0, 1]]
 
 
+def test_refine_intervals_shrinks_a_box_to_what_the_render_shows():
+    # a 4x6 render: a wall at d = 0.2 everywhere, a ball whose visible front is at
+    # d = 0.9 to 0.95 in columns 1-2 (its box reaches back to 0.58), a board seen in
+    # columns 4-5 at 0.5 whose box spans 0.3 to 0.6, a prop hidden behind the board
+    D = np.full((4, 6), 0.2)
+    D[:, 1], D[:, 2] = 0.9, 0.95
+    D[:, 4:] = 0.5
+    boxes = [(0.2, 0.2), (0.58, 0.95), (0.3, 0.6), (0.4, 0.45)]
+    rects = [(0, 0, 6, 4), (0, 0, 3, 4), (3, 0, 6, 4), (3, 0, 6, 4)]
+    # the boxes overlap (ball and board): one group in front of the wall
+    assert blender_layers.split_groups(boxes, max_groups=3) == [[0], [2, 3, 1]]
+    got = blender_layers.refine_intervals(boxes, rects, D)
+    # the prop: no pixel with its box's disparities shows (hidden): its box stays
+    assert got == [(0.2, 0.2), (0.9, 0.95), (0.5, 0.5), (0.4, 0.45)]
+    # with the render's values the ball's front stands apart from the board: a jump
+    assert blender_layers.split_groups(got, max_groups=3) == [[0], [3, 2], [1]]
+    # rectangles are clipped to the image; an empty one keeps the box
+    assert blender_layers.refine_intervals([(0.1, 0.3)], [(7, 5, 9, 9)], D) == [(0.1, 0.3)]
+
+
 def _pinhole(mpi):
     """The MPI composited with no blur: each additive group's layers summed, groups and
     plain layers laid "over", far to near (the compositor at zero aperture)."""
