@@ -35,6 +35,7 @@ def session(tmp_path_factory):
     zips = list((work / "dist").glob("mpib_refocus-*.zip"))
     assert len(zips) == 1
     env = dict(os.environ, BLENDER_USER_RESOURCES=str(work / "blender_user"))
+    env.pop("PYTHONPATH", None)  # mpib_validate from the zip's wheel only, not this checkout
     r = subprocess.run([sys.executable, str(ROOT / "tests" / "blender" / "addon_session.py"),
                         str(zips[0]), str(work)], capture_output=True, text=True, timeout=900,
                        env=env, cwd=work)
