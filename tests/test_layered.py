@@ -6,7 +6,8 @@ wide) at z = 1; a sun with no angle (one deterministic shadow ray) and no bounce
 the only noise is the anti-aliasing and lens sampling. One F12 render gives the
 artist's view layer (the single pass) and the ``mpib_group_<k>`` layers of
 :mod:`mpib_validate.blender.layers`, with the same seed; Cycles' depth of field of the
-same scene (focus on the wall) is the truth.
+same scene (focus on the wall) is the truth. A glass ball before the wall (with
+glossy and transmission bounces) measures what the Indirect Only trick gets wrong.
 """
 
 from __future__ import annotations

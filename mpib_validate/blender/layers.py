@@ -21,7 +21,12 @@ in a view layer ``mpib_group_<k>`` (``k = 0`` farthest) in the same F12 render:
 
 What the trick gets wrong: light that reaches the camera *through* a nearer group
 (refraction, or a transparent BSDF seen in the farther layer) is rendered in the nearer
-layer only, and a farther layer sees no reflections of itself in a nearer mirror. A
+layer only, and is blurred at that group's depth; a farther layer sees no reflections
+of itself in a nearer mirror. Measured on a glass ball before a wall
+(``tests/test_layered.py``): the layers composited with "over" give back the single
+pass to rms 1.5e-3 with the same seed (another seed: 7.5e-3), and the refocus inside
+the ball is 1.8 dB further from Cycles' depth of field than for the same ball diffuse
+(noise-corrected). A
 spanning object put in the farthest group (a ground plane) that hides part of a nearer
 group's object (a hill in front of a house) does not hide it in the layers: Indirect
 Only makes it invisible to that group's camera rays, and "over" puts the nearer group
