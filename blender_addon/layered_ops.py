@@ -96,6 +96,8 @@ def on_layered_toggle(settings, context):
             apply_layers(scene)
         else:
             clear_layers(scene)
+    except (ValueError, RuntimeError) as exc:  # e.g. no view layer of the artist's own
+        settings.last_message = f"error: {exc}"
     finally:
         _busy = False
 
