@@ -532,3 +532,45 @@ def test_what_indirect_only_gets_wrong_refraction_is_blurred_at_the_glass(glass)
     glass_, ball = res["glass"], res["ball"]
     assert glass_["layered"][0] < ball["layered"][0] - 1.0  # the refraction error is there
     assert glass_["layered"][0] > glass_["single"][0] + 10.0  # and far below the fill's
+
+
+def test_the_world_behind_the_farthest_group_comes_from_its_environment_pass(tmp_path):
+    """blender.layers gives the farthest layer an Environment pass where the artist's
+    film is opaque: load_layered_passes adds it (the world where that layer's samples
+    missed), the group is then opaque, and the world keeps disparity 0."""
+    Hs, Ws = 8, 12
+    sky = np.array([0.45, 0.6, 0.85])
+    a0 = np.zeros((Hs, Ws), np.float32)
+    a0[4:] = 1.0  # a ground in the lower half, the world above
+    a0[3] = 0.25  # its horizon row partly covered
+    P0 = (0.3 * a0)[..., None] * np.ones(3)
+    env = (1.0 - a0)[..., None] * sky  # the samples that miss the ground see the sky
+    z0 = np.where(a0 >= 0.5, 4.0, 1e10)
+    a1 = np.zeros((Hs, Ws), np.float32)
+    a1[5:7, 5:7] = 1.0  # a box in front
+    P1 = a1[..., None] * np.array([0.9, 0.1, 0.1])
+    z1 = np.where(a1 > 0, 1.5, 1e10)
+    ch = {}
+    for name, P, a, z in (("mpib_group_0", P0, a0, z0), ("mpib_group_1", P1, a1, z1)):
+        for i, c in enumerate("RGB"):
+            ch[f"{name}.Combined.{c}"] = P[..., i].astype(np.float32)
+        ch[f"{name}.Combined.A"] = a.astype(np.float32)
+        ch[f"{name}.Depth.Z"] = z.astype(np.float32)
+    for i, c in enumerate("RGB"):
+        ch[f"mpib_group_0.Environment.{c}"] = env[..., i].astype(np.float32)
+    path = tmp_path / "world.exr"
+    write_exr(path, ch)
+    lp = load_layered_passes(path)
+    far = lp.groups[0]
+    np.testing.assert_allclose(far[1], 1.0)  # opaque once the world is behind it
+    np.testing.assert_allclose(far[0], P0 + env, atol=1e-6)
+    np.testing.assert_allclose(far[3], a0)  # its own coverage rides along
+    np.testing.assert_allclose(lp.alpha, 1.0)
+    np.testing.assert_allclose(lp.colour[0, 0], sky, atol=1e-6)
+    # the world is at disparity 0, the partly covered horizon takes the ground's
+    D = group_disparity(far[2], far[3])
+    assert np.all(D[:3] == 0.0) and np.allclose(D[3:], 0.25)
+    res = refocus(lp, 4.0, 0.25, "default")  # focus on the ground
+    assert np.isfinite(res.image).all()
+    np.testing.assert_allclose(res.image[..., 3], 1.0, atol=1e-6)  # opaque in, opaque out
+    np.testing.assert_allclose(res.image[0, 0, :3], sky, atol=1e-4)  # the sky far from all
