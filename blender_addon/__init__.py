@@ -6,9 +6,9 @@ the last render, calibrates focus and aperture from the scene camera, runs
 ``mpib_validate.refocus`` and shows the result as a float image.
 """
 
-from . import focus_pull, handlers, nodegroup_ops, operators, properties, ui
+from . import focus_pull, handlers, layered_ops, nodegroup_ops, operators, properties, ui
 
-_modules = (properties, operators, focus_pull, nodegroup_ops, ui, handlers)
+_modules = (properties, operators, focus_pull, layered_ops, nodegroup_ops, ui, handlers)
 
 
 def register():

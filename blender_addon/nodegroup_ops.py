@@ -48,9 +48,11 @@ def _last_depth(scene):
     path = getattr(getattr(scene, "mpib", None), "last_passes", "")
     if not path or not os.path.exists(path):
         return None
-    from mpib_validate.refocus import load_passes
+    from mpib_validate.blender.layers import artist_layer
 
-    passes = load_passes(path)
+    from .operators import load_render_passes
+
+    passes = load_render_passes(path, artist_layer(scene).name)
     r = scene.render
     W = int(r.resolution_x * r.resolution_percentage / 100)
     H = int(r.resolution_y * r.resolution_percentage / 100)

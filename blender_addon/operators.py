@@ -37,6 +37,24 @@ def _to_image(name: str, rgba) -> "bpy.types.Image":
     return img
 
 
+def load_render_passes(path: str, view_layer=None):
+    """The passes of a rendered EXR: its depth-group layers (``mpib_group_<k>``, a
+    Layered Render) when it has them, else its one view layer, or ``view_layer`` (the
+    artist's) when it has several."""
+    from mpib_validate.io.exr import ExrError
+    from mpib_validate.refocus import load_layered_passes, load_passes
+
+    layered = load_layered_passes(path)
+    if layered is not None:
+        return layered
+    try:
+        return load_passes(path)
+    except ExrError:
+        if view_layer is None:
+            raise
+        return load_passes(path, view_layer=view_layer)
+
+
 def _output_path(scene, source: str) -> str:
     """Beside the render output (or the source file), never onto an input."""
     base = bpy.path.abspath(scene.render.filepath) if scene.render.filepath else source
@@ -71,7 +89,10 @@ def prepare(context_or_scene, path: str, name: str, frame=None, save=None) -> di
         out = _output_path(scene, path)
     if out is not None:
         refuse_overwrite(out, [path])
+    from mpib_validate.blender.layers import artist_layer
+
     return {"path": path, "name": name, "camera": cam_kwargs, "pixel": pixel,
+            "view_layer": artist_layer(scene).name,
             "camera_from": calibrate.camera_sources(settings, pixel),
             "preset": settings.preset, "save": out, "warnings": warnings}
 
@@ -81,10 +102,10 @@ def compute(request: dict, progress=None):
     ``progress(fraction)`` may raise ``mpib_validate.refocus.Cancelled`` to stop; nothing
     is written then. Returns the :class:`mpib_validate.refocus.RefocusResult`."""
     from mpib_validate.camera import blender_camera
-    from mpib_validate.refocus import focus_from_pixel, load_passes, refocus, write_result
+    from mpib_validate.refocus import focus_from_pixel, refocus, write_result
 
     report = progress if progress is not None else (lambda fraction: None)
-    passes = load_passes(request["path"])
+    passes = load_render_passes(request["path"], request.get("view_layer"))
     report(0.05)
     cam = blender_camera(**request["camera"])
     d_f = cam.focus_disparity
@@ -165,7 +186,8 @@ class RefocusJob:
 
 
 def _summary(info) -> str:
-    return (f"refocused: {info['planes']} planes, largest blur {info['largest_radius_px']:.1f} px, "
+    groups = f" ({info['groups']} depth groups)" if info.get("groups", 1) > 1 else ""
+    return (f"refocused{groups}: {info['planes']} planes, largest blur {info['largest_radius_px']:.1f} px, "
             f"fill {100 * info['fill_fraction']:.1f} %, {info['seconds']:.2f} s"
             + (f", saved {info['saved']}" if "saved" in info else ""))
 

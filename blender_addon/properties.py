@@ -1,8 +1,8 @@
 """Settings of the add-on, stored on the scene (``scene.mpib``)."""
 
 import bpy
-from bpy.props import (BoolProperty, EnumProperty, FloatProperty, IntVectorProperty,
-                       PointerProperty, StringProperty)
+from bpy.props import (BoolProperty, EnumProperty, FloatProperty, IntProperty,
+                       IntVectorProperty, PointerProperty, StringProperty)
 
 
 def _preset_items():
@@ -20,6 +20,12 @@ def _live(settings, context):
     from . import focus_pull
 
     focus_pull.on_setting_changed(settings, context)
+
+
+def _layered_toggle(settings, context):
+    from .layered_ops import on_layered_toggle
+
+    on_layered_toggle(settings, context)
 
 
 class MPIB_Settings(bpy.types.PropertyGroup):
@@ -49,6 +55,20 @@ class MPIB_Settings(bpy.types.PropertyGroup):
         name="Refocus Animation", default=False,
         description="Refocus every frame of an animation render as it is written "
                     "(needs multilayer EXR output with the Depth pass)")
+    layered_render: BoolProperty(
+        name="Layered Render", default=False, update=_layered_toggle,
+        description="Render each depth group in its own view layer (the others Indirect "
+                    "Only), so the refocus gets what nearer objects hide and exact coverage "
+                    "at their edges; unticking removes those view layers again")
+    group_source: EnumProperty(
+        name="Groups", default="AUTO",
+        items=(("AUTO", "Automatic", "From the objects' bounding boxes in camera space and "
+                                     "where the depth jumps in the last render"),
+               ("COLLECTIONS", "Collections", "One group per collection ticked as Depth "
+                                              "Group (the other objects are one more group)")))
+    max_groups: IntProperty(name="Max Groups", default=3, min=2, max=8,
+                            description="Largest number of automatic depth groups (each is "
+                                        "one more view layer to render)")
     last_passes: StringProperty(name="Last Passes", subtype="FILE_PATH",
                                 description="EXR with the passes of the last render")
     last_message: StringProperty(name="Status", description="What the last run reported")

@@ -29,11 +29,40 @@ def draw_settings(layout, context):
     sub = box.column()
     sub.enabled = not s.use_camera_fstop
     sub.prop(s, "fstop")
+    draw_layered(layout, context)
     layout.prop(s, "preset")
     layout.prop(s, "save_exr")
     layout.prop(s, "refocus_animation")
     if s.last_message:
         layout.label(text=s.last_message, icon="ERROR" if s.last_message.startswith("error") else "INFO")
+
+
+def draw_layered(layout, context):
+    s = context.scene.mpib
+    box = layout.box()
+    box.prop(s, "layered_render")
+    if not s.layered_render:
+        return
+    box.prop(s, "group_source", expand=True)
+    if s.group_source == "AUTO":
+        box.prop(s, "max_groups")
+    else:
+        from mpib_validate.blender.layers import GROUP_PREFIX
+
+        def walk(coll, depth):
+            for child in coll.children:
+                if not child.name.startswith(GROUP_PREFIX):
+                    row = box.row()
+                    row.separator(factor=depth)
+                    row.prop(child, "mpib_depth_group", text=child.name)
+                    walk(child, depth + 1.0)
+
+        walk(context.scene.collection, 0.0)
+    row = box.row(align=True)
+    row.operator("mpib.setup_layers", icon="FILE_REFRESH")
+    row.operator("mpib.remove_layers", icon="X")
+    names = [vl.name for vl in context.scene.view_layers if vl.name.startswith("mpib_group_")]
+    box.label(text=f"{len(names)} group view layers" if names else "single pass (no groups)")
 
 
 class MPIB_PT_image(bpy.types.Panel):

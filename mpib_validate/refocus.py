@@ -46,7 +46,8 @@ class Passes:
     #: ``(H, W)`` film alpha (coverage) of the colour, premultiplied into it; None = opaque
     alpha: np.ndarray | None = None
     #: layered input (:func:`load_layered_passes`): far to near, ``(colour (H, W, 3)
-    #: premultiplied, alpha (H, W), depth (H, W))`` per depth group; ``colour``,
+    #: premultiplied, alpha (H, W), depth (H, W)[, coverage (H, W)])`` per depth group
+    #: (coverage: the farthest group's own where the world is added in); ``colour``,
     #: ``alpha`` and ``depth`` above are then the groups composited with "over" (and the
     #: nearest covering group's depth), for focusing and display
     groups: list | None = None
@@ -219,7 +220,11 @@ def load_layered_passes(path, layered: bool | None = None,
     ``layered=None`` (automatic): the view layers named ``mpib_group_<k>``, if there
     are two or more; ``True``: every view layer with Combined and Depth (an error
     naming the file if fewer than two); ``False``: None. The groups are ordered far to
-    near by their median depth (over pixels with alpha > 1/2 and a finite Z)."""
+    near by their median depth (over pixels with alpha > 1/2 and a finite Z). Where the
+    farthest group has an Environment pass (the world, see
+    :mod:`mpib_validate.blender.layers`), it is added to that group's colour, which is
+    then opaque; its entry in ``Passes.groups`` carries the group's own coverage as a
+    fourth member (where it is 0 the pixel is the world: disparity 0)."""
     if layered is False:
         return None
     img = read_exr(path)
@@ -242,6 +247,14 @@ def load_layered_passes(path, layered: bool | None = None,
         z = img.channels[f"{name}.Depth.Z"].astype(np.float64)
         groups.append((name, rgba[..., :3], np.clip(rgba[..., 3], 0.0, 1.0), z))
     groups.sort(key=lambda g: -_median_depth(g[3], g[2], far_limit))  # far to near
+    far = groups[0][0]
+    if f"{far}.Environment.R" in img.channels:
+        # the world behind the farthest group (blender.layers: the artist's film was
+        # opaque): Combined + Environment is that layer over the world, opaque; its
+        # own coverage still tells the world (disparity 0) from the group's content
+        env = rgba_from(img, f"{far}.Environment.")[..., :3].astype(np.float64)
+        _, P0, a0, z0 = groups[0]
+        groups[0] = (far, P0 + env, np.ones_like(a0), z0, a0)
     colour, alpha = composite_over([g[1:] for g in groups])
     depth = groups[0][3].copy()
     for _, _, a, z in groups[1:]:
@@ -330,8 +343,9 @@ def build_mpi(passes: Passes, blur_parameter: float, preset: str = "default",
             raise PassError(f"{passes.colour_source}: a layered input holds what lies behind "
                             f"the foreground; no background render is needed")
         # layered input: its own film channel unless the farthest group is opaque
-        groups = [(c, a, group_disparity(z, a, far_limit, f"{passes.depth_source} group {k}"))
-                  for k, (c, a, z) in enumerate(passes.groups)]
+        groups = [(g[0], g[1], group_disparity(g[2], g[-1] if len(g) > 3 else g[1], far_limit,
+                                               f"{passes.depth_source} group {k}"))
+                  for k, g in enumerate(passes.groups)]
         mpi, info = layers_from_layered_passes(groups, blur_parameter, p.passes, progress=progress)
         opaque = mpi.channels == 4
         D = np.concatenate([g[2][g[1] > 0] for g in groups] + [D.ravel()])

@@ -208,6 +208,77 @@ del session_before
 out["focus_pull"] = pulls
 sc.mpib.use_camera_focus = True
 
+# -- layered render: tick it, render, refocus; untick removes only the group layers --------
+from mpib_validate.refocus import view_layers  # noqa: E402
+
+
+def pixels_of(name):
+    im = bpy.data.images.get(name)
+    return np.array(im.pixels[:], np.float32).reshape(im.size[1], im.size[0], 4)[::-1]
+
+
+sc = cycles_scene(dof=False, spp=16)  # the same wall and card as the single pass above
+own = sc.view_layers.new("ArtistExtra")  # an artist's second view layer: kept as it is
+own.use = False
+lay = {"before": [vl.name for vl in sc.view_layers],
+       "collections_before": sorted(c.name for c in bpy.data.collections)}
+sc.mpib.layered_render = True
+lay["tick_message"] = sc.mpib.last_message
+lay["layers"] = [vl.name for vl in sc.view_layers]
+lay["film_while_set_up"] = sc.render.film_transparent
+bpy.ops.render.render(write_still=False)
+lay["kept_layers"] = view_layers(read_exr(sc.mpib.last_passes))
+lay["refocus"] = sorted(bpy.ops.mpib.refocus_render())
+lay["refocus_message"] = sc.mpib.last_message
+np.save(os.path.join(work, "layered.npy"), pixels_of("Render Result (refocused)")[..., :3])
+# the groups again, now with the last render's depth
+lay["update"] = sorted(bpy.ops.mpib.setup_layers())
+lay["update_message"] = sc.mpib.last_message
+# Refocus Animation reads the group layers of each written frame
+sc.frame_start = sc.frame_end = 1
+sc.mpib.refocus_animation = True
+multilayer_exr_output(sc)
+sc.render.filepath = os.path.join(work, "anim_layered", "frame_")
+bpy.ops.render.render(animation=True)
+sib = os.path.join(work, "anim_layered", "frame_0001_refocused.exr")
+lay["animation_groups"] = (json.loads(read_exr(sib).header["mpib"]).get("groups")
+                           if os.path.exists(sib) else sc.mpib.last_message)
+sc.mpib.refocus_animation = False
+sc.mpib.layered_render = False
+lay["untick_message"] = sc.mpib.last_message
+lay["after"] = [vl.name for vl in sc.view_layers]
+lay["collections_after"] = sorted(c.name for c in bpy.data.collections)
+lay["film_after"] = sc.render.film_transparent
+# groups from the collections the artist ticks: the card's collection against the rest
+front = bpy.data.collections.new("Front")
+sc.collection.children.link(front)
+card = bpy.data.objects["card"]
+for c in list(card.users_collection):
+    c.objects.unlink(card)
+front.objects.link(card)
+front.mpib_depth_group = True
+sc.mpib.group_source = "COLLECTIONS"
+lay["collections_call"] = sorted(bpy.ops.mpib.setup_layers())
+lay["collections_message"] = sc.mpib.last_message
+lay["collections_ticked"] = sc.mpib.layered_render
+lay["remove_call"] = sorted(bpy.ops.mpib.remove_layers())
+lay["collections_removed"] = ([vl.name for vl in sc.view_layers], sc.mpib.layered_render,
+                              "Front" in bpy.data.collections)
+sc.mpib.group_source = "AUTO"
+sc.view_layers.remove(own)
+bpy.data.collections.remove(front)
+# one object: nothing to split, the single pass with a report
+sc = cycles_scene(dof=False, spp=4, empty=True)
+emitter("wall", 8.0, (0, 0, -6.0), (0.2, 0.8, 0.3), 6.0)
+sc.mpib.layered_render = True
+lay["one_message"] = sc.mpib.last_message
+lay["one_layers"] = [vl.name for vl in sc.view_layers]
+bpy.ops.render.render(write_still=False)
+lay["one_refocus"] = sorted(bpy.ops.mpib.refocus_render())
+lay["one_refocus_message"] = sc.mpib.last_message
+sc.mpib.layered_render = False
+out["layered"] = lay
+
 # -- animation: each written frame gets a refocused sibling, focus from the camera's keys ---
 sc = cycles_scene(dof=True, spp=4)
 cam = sc.camera.data
@@ -272,6 +343,7 @@ bpy.ops.preferences.addon_disable(module=out["addon_enabled"][0])
 out["after_disable"] = {
     "types": [c for c in dir(bpy.types) if c.startswith("MPIB")],
     "scene_property": hasattr(bpy.types.Scene, "mpib"),
+    "collection_property": hasattr(bpy.types.Collection, "mpib_depth_group"),
     "handlers": [f.__name__ for f in bpy.app.handlers.render_complete + bpy.app.handlers.render_write
                  if f.__module__.startswith("bl_ext")],
     "kept_passes": [p for p in os.listdir(tempfile.gettempdir())
