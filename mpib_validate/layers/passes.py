@@ -90,6 +90,9 @@ class PassesSettings:
             alone). Fewer seams where one surface crosses groups, and one layer per plane
             of a slab; two surfaces closer than this are then side by side rather than
             one in front (an error within a band of that many pixels).
+        refine: ``"off"`` (the disparity is trusted: exact depth from a renderer) or
+            ``"guided"`` (an unreliable, e.g. predicted, disparity: its edges are moved
+            onto the colour edges first, :func:`mpib_validate.layers.refine.refine_disparity`).
     """
 
     tolerance_px: float = 0.5
@@ -100,6 +103,7 @@ class PassesSettings:
     unmix_edges: bool = True
     split: str = "linear"
     slab_px: float = 0.0
+    refine: str = "off"
 
 
 @dataclass
@@ -286,6 +290,12 @@ def sheets_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
         raise PassError(f"the blur parameter must be > 0 (a zero aperture has no defocus), "
                         f"got {blur_parameter}")
     H, W = D.shape
+    if settings.refine == "guided":
+        from mpib_validate.layers.refine import refine_disparity
+
+        D = refine_disparity(rgb, D, blur_parameter)
+    elif settings.refine != "off":
+        raise ValueError(f"refine must be 'off' or 'guided', got {settings.refine!r}")
     if background is not None:
         known_rgb, known, known_d = (tuple(background) + (None,))[:3]
         shapes = [np.shape(known_rgb)[:2], np.shape(known)]
