@@ -116,7 +116,7 @@ def _scene_task(item) -> list[dict]:
     return scene_rows(scene, f"{family}-{seed}", family, seed, ref_spp)
 
 
-def refine_cost(width: int = 1920, height: int = 1080) -> dict:
+def refine_cost() -> dict:
     """CPU seconds (``time.process_time``, one run, this process) of the refinement and of
     the rest of the default pipeline (layers + Eq. 1) on the refocus suite's 1080p scene
     with its degraded disparity."""
@@ -128,8 +128,6 @@ def refine_cost(width: int = 1920, height: int = 1080) -> dict:
     from mpib_validate.presets import PRESETS
 
     scene = hd_scene()
-    if (width, height) != (1920, 1080):
-        scene = scene.with_camera(width=width, height=height)
     res = trace.render(scene, samples.pinhole(2), notices=False)
     cam = scene.camera
     A, df = cam.blur_parameter, cam.focus_disparity
@@ -145,7 +143,7 @@ def refine_cost(width: int = 1920, height: int = 1080) -> dict:
     mpi, _ = layers_from_passes(aif, R, A, p.passes)
     render_subapertures(mpi, A, df, p.subapertures, p.composite)
     t_rest, w_rest = time.process_time() - t0, time.perf_counter() - w0
-    return {"width": width, "height": height, "refine_cpu_s": t_ref, "rest_cpu_s": t_rest,
+    return {"width": cam.width, "height": cam.height, "refine_cpu_s": t_ref, "rest_cpu_s": t_rest,
             "ratio": t_ref / t_rest, "refine_wall_s": w_ref, "rest_wall_s": w_rest}
 
 

@@ -84,7 +84,7 @@ def colour_guide(colour: np.ndarray) -> np.ndarray:
 
 
 def refine_disparity(colour: np.ndarray, disparity: np.ndarray, blur_parameter: float,
-                     radius: int = 6, guide_radius: int = 4, eps: float = 1e-3,
+                     radius: int = 6, guide_radius: int = 8, eps: float = 1e-3,
                      jump_px: float = 2.0, keep_px: float = 0.5) -> np.ndarray:
     """Disparity (``(H, W)``, same units as ``disparity``) with its edges moved onto the
     colour edges (see the module docstring for the steps).
@@ -96,7 +96,11 @@ def refine_disparity(colour: np.ndarray, disparity: np.ndarray, blur_parameter: 
             radius difference ``A |d_1 - d_2|`` they make.
         radius: ``r`` of the uncertain band and of the side values (pixels): at least
             the predicted edge's half-width plus its misregistration.
-        guide_radius, eps: the guided filter's window radius (pixels) and ridge.
+        guide_radius, eps: the guided filter's window radius (pixels) and ridge. Where
+            the two sides' colours differ, a pixel between the colour edge and a mask
+            edge ``s`` pixels off gets ``q`` near ``s / (2 guide_radius + 1)`` of the
+            wrong side, so ``s`` up to about ``guide_radius / 2`` is undone (3 px at 8;
+            4 corrected only 1 of a 2 px misregistration).
         jump_px: an edge whose sides differ by less blur radius than this is left alone.
         keep_px: a band pixel keeps its own disparity when it is within this much blur
             radius of its side's value.
