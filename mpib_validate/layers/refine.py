@@ -66,13 +66,16 @@ def guided_filter(guide: np.ndarray, p: np.ndarray, r: int, eps: float) -> np.nd
     idx = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
     prods = np.stack([I[..., i] * I[..., j] for i, j in idx], axis=-1)
     mII = box_mean(prods, r)
-    S = np.empty(I.shape[:2] + (3, 3))
-    for k, (i, j) in enumerate(idx):
-        S[..., i, j] = S[..., j, i] = mII[..., k] - mI[..., i] * mI[..., j]
-    S[..., 0, 0] += eps
-    S[..., 1, 1] += eps
-    S[..., 2, 2] += eps
-    a = np.linalg.solve(S, cIp[..., None])[..., 0]
+    # a = (Sigma + eps U)^-1 cov(I, p), by the adjugate of the symmetric 3x3 matrix
+    s00, s01, s02, s11, s12, s22 = (mII[..., k] - mI[..., i] * mI[..., j]
+                                    for k, (i, j) in enumerate(idx))
+    s00, s11, s22 = s00 + eps, s11 + eps, s22 + eps
+    c00, c01, c02 = s11 * s22 - s12 * s12, s02 * s12 - s01 * s22, s01 * s12 - s02 * s11
+    c11, c12, c22 = s00 * s22 - s02 * s02, s01 * s02 - s00 * s12, s00 * s11 - s01 * s01
+    det = s00 * c00 + s01 * c01 + s02 * c02  # > 0: Sigma is positive semi-definite
+    v0, v1, v2 = cIp[..., 0], cIp[..., 1], cIp[..., 2]
+    a = np.stack([c00 * v0 + c01 * v1 + c02 * v2, c01 * v0 + c11 * v1 + c12 * v2,
+                  c02 * v0 + c12 * v1 + c22 * v2], axis=-1) / det[..., None]
     b = mp - (a * mI).sum(axis=-1)
     return (box_mean(a, r) * I).sum(axis=-1) + box_mean(b, r)
 
@@ -85,7 +88,7 @@ def colour_guide(colour: np.ndarray) -> np.ndarray:
 
 def refine_disparity(colour: np.ndarray, disparity: np.ndarray, blur_parameter: float,
                      radius: int = 6, guide_radius: int = 8, eps: float = 1e-3,
-                     jump_px: float = 2.0, keep_px: float = 0.5) -> np.ndarray:
+                     jump_px: float = 2.0, keep_px: float = 0.5, flip_px: int = 3) -> np.ndarray:
     """Disparity (``(H, W)``, same units as ``disparity``) with its edges moved onto the
     colour edges (see the module docstring for the steps).
 
@@ -104,6 +107,8 @@ def refine_disparity(colour: np.ndarray, disparity: np.ndarray, blur_parameter: 
         jump_px: an edge whose sides differ by less blur radius than this is left alone.
         keep_px: a band pixel keeps its own disparity when it is within this much blur
             radius of its side's value.
+        flip_px: the colour may change a pixel's side only within this many pixels of
+            the predicted edge (the misregistration it can undo).
     """
     from scipy import ndimage
 
@@ -114,10 +119,42 @@ def refine_disparity(colour: np.ndarray, disparity: np.ndarray, blur_parameter: 
     band = blur_parameter * (hi - lo) > jump_px
     if not band.any():
         return D.copy()
-    mid = 0.5 * (hi + lo)
-    m = (D > mid).astype(np.float64)
-    q = guided_filter(colour_guide(colour), m, guide_radius, eps)
-    near = q >= 0.5
+    m = D > 0.5 * (hi + lo)
+    # the colour may move the side only within flip_px of the predicted edge: deeper
+    # inside, a texture whose colours straddle the other side's (red and cyan stripes
+    # before a grey wall) would flip under the guided filter's linear colour model
+    f = 2 * flip_px + 1
+    zone = band & (ndimage.maximum_filter(m, f) != ndimage.minimum_filter(m, f))
+    q = np.zeros(D.shape)
+    margin = 2 * guide_radius  # q at a pixel depends on the guide within 2 r of it
+    for (y0, y1, x0, x1) in _boxes(zone, TILE):
+        Y0, Y1 = max(0, y0 - margin), min(D.shape[0], y1 + margin)
+        X0, X1 = max(0, x0 - margin), min(D.shape[1], x1 + margin)
+        qb = guided_filter(colour_guide(colour[Y0:Y1, X0:X1]),
+                           m[Y0:Y1, X0:X1].astype(np.float64), guide_radius, eps)
+        q[y0:y1, x0:x1] = qb[y0 - Y0:y1 - Y0, x0 - X0:x1 - X0]
+    near = np.where(zone, q >= 0.5, m)
     side = np.where(near, hi, lo)
-    own = (near == (m > 0.5)) & (blur_parameter * np.abs(D - side) <= keep_px)
+    own = (near == m) & (blur_parameter * np.abs(D - side) <= keep_px)
     return np.where(band & ~own, side, D)
+
+
+#: tile size (px) of the boxes that the guided filter runs on
+TILE = 32
+
+
+def _boxes(mask: np.ndarray, tile: int):
+    """Boxes ``(y0, y1, x0, x1)`` covering ``mask``: the bounding boxes of the connected
+    groups of ``tile x tile`` tiles that hold a True pixel (so the guided filter runs
+    near the edges only; its result is the same as on the whole image)."""
+    from scipy import ndimage
+
+    H, W = mask.shape
+    th, tw = -(-H // tile), -(-W // tile)
+    padded = np.zeros((th * tile, tw * tile), bool)
+    padded[:H, :W] = mask
+    coarse = padded.reshape(th, tile, tw, tile).any(axis=(1, 3))
+    labels, _ = ndimage.label(coarse, structure=np.ones((3, 3), bool))
+    for sl in ndimage.find_objects(labels):
+        yield (sl[0].start * tile, min(H, sl[0].stop * tile),
+               sl[1].start * tile, min(W, sl[1].stop * tile))
