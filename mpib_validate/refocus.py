@@ -13,6 +13,7 @@ A layered render (one view layer per depth group, ``mpib_group_<k>.Combined.*`` 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import re
@@ -257,8 +258,12 @@ def read_background(path, shape, far_limit: float = DEFAULT_FAR_LIMIT):
 
 def refocus(passes: Passes, blur_parameter: float, focus_disparity: float,
             preset: str = "default", far_limit: float = DEFAULT_FAR_LIMIT,
-            progress=None, background=None) -> RefocusResult:
+            progress=None, background=None, refine: str | None = None) -> RefocusResult:
     """Build the MPI from the passes and render it with the preset's settings.
+
+    ``refine``: ``"guided"`` for a predicted (monocular) disparity, whose edges are then
+    moved onto the colour edges (:mod:`mpib_validate.layers.refine`); None or ``"off"``
+    (the preset's setting, off in every preset) for a renderer's exact depth.
 
     ``background``: optional ``(colour, valid)`` of what lies behind the foreground (see
     :func:`read_background`); it replaces the hidden-background fill where valid.
@@ -272,6 +277,8 @@ def refocus(passes: Passes, blur_parameter: float, focus_disparity: float,
     if not (focus_disparity >= 0) or not math.isfinite(focus_disparity):
         raise PassError(f"the focus disparity must be finite and >= 0, got {focus_disparity}")
     p = get_preset(preset)
+    if refine is not None:
+        p = dataclasses.replace(p, passes=dataclasses.replace(p.passes, refine=refine))
     t0 = time.perf_counter()
     D = depth_to_disparity(passes.depth, far_limit, source=passes.depth_source)
     first = second = None

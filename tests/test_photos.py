@@ -122,3 +122,30 @@ def test_photos_suite_on_one_tiny_scene_per_family(tmp_path):
         assert math.isfinite(row["psnr"]) and math.isfinite(row["psnr_ob"])
     assert (tmp_path / "photos.md").read_text().count("| default degraded |") == 2
     assert (tmp_path / "photos.json").stat().st_size > 0
+
+
+def test_refinement_on_tiles_equals_the_whole_image(monkeypatch):
+    """The guided filter runs on boxes around the edges with a 2 r margin; with one tile
+    the size of the image the result must be the same: it is a threshold of the filter
+    output (which differs by rounding at most) and the windows' extremes (exact)."""
+    from mpib_validate.layers import refine
+
+    colour, D = _two_regions(size=96, edge=40)
+    pred = degrade_disparity(D, 2)
+    small = refine_disparity(colour, pred, 40.0)
+    monkeypatch.setattr(refine, "TILE", 128)
+    np.testing.assert_array_equal(small, refine_disparity(colour, pred, 40.0))
+
+
+def test_refocus_takes_the_refine_option():
+    from mpib_validate.refocus import Passes, refocus
+
+    colour, D = _two_regions()
+    pred = np.roll(degrade_disparity(D, 0, blur_px=2.0, down=1, shift_px=0.0, noise=0.0), 2, 1)
+    passes = Passes(colour.astype(np.float32), 1.0 / pred, "c", "d")
+    off = refocus(passes, 40.0, 0.1).image
+    on = refocus(passes, 40.0, 0.1, refine="guided").image
+    # focus on the far side: the near red surface blurs by 16 px; moving its edge 2 px
+    # changes the image near the edge
+    assert np.abs(on - off).max() > 0.01
+    assert np.array_equal(off, refocus(passes, 40.0, 0.1, refine="off").image)
