@@ -275,11 +275,9 @@ def _summarise(result):
     return {"headlines": heads, "tables": tables}
 
 
-def _fmt(v, nd=2):
-    return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{nd}f}"
-
-
 def _markdown(result) -> str:
+    from mpib_validate.bench.refocus import _fmt
+
     m = result["machine"]
     lines = ["# Refocusing from colour + predicted-looking disparity", "",
              f"Machine: {m.get('processor')}, {m.get('affinity_cores', m.get('cpu_count'))} cores; "
