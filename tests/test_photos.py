@@ -117,7 +117,9 @@ def test_photos_suite_on_one_tiny_scene_per_family(tmp_path):
     for preset in ("draft", "default", "best"):
         for kind in ("exact (bound)", "degraded", "degraded + guided"):
             assert f"{preset} {kind}" in methods
-    assert "default exact + guided" in methods
+    for m in ("default exact + guided", "default degraded + guided-thin",
+              "default exact + guided-thin"):
+        assert m in methods
     for row in r["rows"]:
         assert math.isfinite(row["psnr"]) and math.isfinite(row["psnr_ob"])
     assert (tmp_path / "photos.md").read_text().count("| default degraded |") == 2
@@ -149,3 +151,23 @@ def test_refocus_takes_the_refine_option():
     # changes the image near the edge
     assert np.abs(on - off).max() > 0.01
     assert np.array_equal(off, refocus(passes, 40.0, 0.1, refine="off").image)
+
+
+def test_guided_thin_gives_a_thin_wire_its_disparity_back():
+    """A 2 px wire (d = 0.5, white) before a far grey wall (d = 0.1), its disparity blurred
+    (sigma 2 px): the blur keeps the local mean, so over a 13 px window the wire's
+    near fraction 2/13 and the mean give back its jump; the window's maximum alone keeps
+    about 0.4 of it (2 px of a sigma-2 Gaussian)."""
+    colour = np.full((48, 48, 3), 0.2)
+    colour[:, 23:25] = 0.9
+    D = np.full((48, 48), 0.1)
+    D[:, 23:25] = 0.5
+    pred = degrade_disparity(D, 0, blur_px=2.0, down=1, shift_px=0.0, noise=0.0)
+    assert pred[24, 23] < 0.3  # the prediction has lost most of the wire
+    plain = refine_disparity(colour, pred, 40.0)
+    thin = refine_disparity(colour, pred, 40.0, thin=True, flip_px=48)
+    assert plain[24, 23] < 0.3
+    # within 0.02 (0.8 px of blur radius at A = 40): the Gaussian's tails beyond the
+    # 13 px window (3 sigma) and the window's clipped mean at the wire's edge
+    np.testing.assert_allclose(thin[8:40, 23:25], 0.5, atol=0.02)
+    np.testing.assert_allclose(thin[8:40, :18], 0.1, atol=1e-12)  # the wall is untouched

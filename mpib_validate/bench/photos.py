@@ -6,7 +6,8 @@ tracer's exact disparity is degraded as an estimator errs
 (:func:`mpib_validate.cards.degrade.degrade_disparity`: blur, 4x down and bilinear up,
 smooth multiplicative noise, a 1.5 px shift; seeded by the scene's seed), and every
 preset refocuses colour + that disparity, without and with the edge-aware refinement
-(:mod:`mpib_validate.layers.refine`, ``PassesSettings(refine="guided")``); Blender's
+(:mod:`mpib_validate.layers.refine`, ``PassesSettings(refine="guided")``, and for the
+default preset ``"guided-thin"``); Blender's
 Defocus node gets the same degraded depth. The exact-depth scores are the bound, and
 the refinement is also run on exact depth (it must not hurt there). The boundary mask
 is the true one (:func:`mpib_validate.cards.evaluate.card_scene_mask`).
@@ -70,7 +71,10 @@ def _methods(scene, res, seed):
         methods[f"{name} exact (bound)"] = passes(exact, p, "off")
         methods[f"{name} degraded"] = passes(degraded, p, "off")
         methods[f"{name} degraded + guided"] = passes(degraded, p, "guided")
+    methods["default degraded + guided-thin"] = passes(degraded, PRESETS["default"],
+                                                       "guided-thin")
     methods["default exact + guided"] = passes(exact, PRESETS["default"], "guided")
+    methods["default exact + guided-thin"] = passes(exact, PRESETS["default"], "guided-thin")
     import importlib.util
 
     if importlib.util.find_spec("bpy") is not None:
@@ -263,10 +267,17 @@ def _summarise(result):
                 s += (f" and {node['psnr_ob']:.1f} dB for Blender's Defocus node on the same "
                       f"degraded depth ({rf['psnr_ob'] - node['psnr_ob']:+.1f} dB)")
             heads.append(s + ".")
-        eg = g.get("default exact + guided")
-        if ex and eg:
+        th = g.get("default degraded + guided-thin")
+        if ex and th:
+            heads.append(f"{family}: with the thin-structure recovery (guided-thin): "
+                         f"{th['psnr_ob']:.1f} dB ({th['psnr_ob'] - ex['psnr_ob']:+.1f} dB)"
+                         + (f", {th['psnr_ob'] - node['psnr_ob']:+.1f} dB over the Defocus "
+                            f"node." if node else "."))
+        eg, et = g.get("default exact + guided"), g.get("default exact + guided-thin")
+        if ex and eg and et:
             heads.append(f"{family}: the refinement on exact depth: PSNR_ob "
-                         f"{eg['psnr_ob']:.1f} dB against {ex['psnr_ob']:.1f} dB without.")
+                         f"{eg['psnr_ob']:.1f} dB (guided), {et['psnr_ob']:.1f} dB "
+                         f"(guided-thin) against {ex['psnr_ob']:.1f} dB without.")
     c = result.get("refine_cost")
     if c:
         heads.append(f"guided refinement at {c['width']}x{c['height']}: {c['refine_cpu_s']:.2f} "

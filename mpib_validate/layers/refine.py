@@ -92,7 +92,8 @@ def colour_guide(colour: np.ndarray) -> np.ndarray:
 
 def refine_disparity(colour: np.ndarray, disparity: np.ndarray, blur_parameter: float,
                      radius: int = 6, guide_radius: int = 8, eps: float = 1e-3,
-                     jump_px: float = 2.0, keep_px: float = 0.5, flip_px: int = 3) -> np.ndarray:
+                     jump_px: float = 2.0, keep_px: float = 0.5, flip_px: int = 3,
+                     thin: bool = False) -> np.ndarray:
     """Disparity (``(H, W)``, same units as ``disparity``) with its edges moved onto the
     colour edges (see the module docstring for the steps).
 
@@ -113,6 +114,12 @@ def refine_disparity(colour: np.ndarray, disparity: np.ndarray, blur_parameter: 
             radius of its side's value.
         flip_px: the colour may change a pixel's side only within this many pixels of
             the predicted edge (the misregistration it can undo).
+        thin: also give structures thinner than the prediction's blur (wires, strands,
+            whose predicted bump is a fraction of their jump) the near value that the
+            local mean implies (see the code); use with a large ``flip_px`` so the
+            colour can split a grid of wires from its gaps. It assumes the prediction
+            keeps the local mean, and on exact depth it errs (``mpib bench --suite
+            photos`` measures both).
     """
     from scipy import ndimage
 
@@ -138,6 +145,16 @@ def refine_disparity(colour: np.ndarray, disparity: np.ndarray, blur_parameter: 
                            m[Y0:Y1, X0:X1].astype(np.float64), guide_radius, eps)
         q[y0:y1, x0:x1] = qb[y0 - Y0:y1 - Y0, x0 - X0:x1 - X0]
     near = np.where(zone, q >= 0.5, m)
+    if thin:
+        # the degradation keeps the local mean: mean(d) = lo + f (hi - lo), f the near
+        # fraction of the window; a structure thinner than the blur, whose window
+        # maximum is a fraction of its jump, gets hi = lo + (mean(d) - lo) / f (for
+        # 0.1 < f < 1/2: at most 10 times the mean's excess over lo)
+        md = box_mean(D, radius)
+        fn = box_mean(near.astype(np.float64), radius)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            hi_t = lo + (md - lo) / fn
+        hi = np.where(band & (fn > 0.1) & (fn < 0.5), np.maximum(hi_t, hi), hi)
     side = np.where(near, hi, lo)
     own = (near == m) & (blur_parameter * np.abs(D - side) <= keep_px)
     return np.where(band & ~own, side, D)
