@@ -346,9 +346,11 @@ example: mpib refocus photo.jpg --disparity disp.png --K 60 --disp-focus 0.81 -o
 """
 
 
-def _plan_and_refocus(args, passes, A: float, d_f: float, D, background=None):
+def _plan_and_refocus(args, passes, A: float, d_f: float, D, background=None,
+                      refine: str | None = None):
     """Estimate the memory from the disparity ``D`` (refused past --max-memory-gb),
-    print the plan, and refocus with a progress bar on a terminal."""
+    print the plan, and refocus with a progress bar on a terminal (``refine``: the
+    disparity refinement, :func:`mpib_validate.refocus.build_mpi`)."""
     from mpib_validate import budget
     from mpib_validate.refocus import refocus
 
@@ -365,12 +367,13 @@ def _plan_and_refocus(args, passes, A: float, d_f: float, D, background=None):
     try:
         if getattr(args, "mpi_cache", None) is None:
             result = refocus(passes, A, d_f, args.preset, args.far_limit,
-                             background=background, progress=progress)
+                             background=background, progress=progress, refine=refine)
         else:
             from mpib_validate.layers.cache import refocus_cached
 
             result, reused, entry = refocus_cached(passes, A, d_f, args.mpi_cache, args.preset,
-                                                   args.far_limit, background, progress)
+                                                   args.far_limit, background, progress,
+                                                   refine)
             print(f"{'reused the cached MPI' if reused else 'built the MPI and cached it as'} "
                   f"{entry}" + (" (same inputs, preset, far limit and aperture)" if reused
                                 else ""), flush=True)
@@ -382,7 +385,8 @@ def _plan_and_refocus(args, passes, A: float, d_f: float, D, background=None):
     return result
 
 
-_PHOTO_ONLY = ("disparity", "K", "disp_focus", "gamma", "encoding", "exr", "official_focus_range")
+_PHOTO_ONLY = ("disparity", "K", "disp_focus", "gamma", "encoding", "exr", "official_focus_range",
+               "refine")
 
 
 def _photo_input(args) -> bool:
@@ -508,7 +512,11 @@ def _refocus_photo(args) -> int:
         camera_info = used.header()
     if args.official_focus_range:
         passes.disparity = widen_focus(D, d_f, 0.5 / OFFICIAL_BINS)
-    result = _plan_and_refocus(args, passes, A, d_f, passes.disparity)
+    # a predicted disparity map is refined onto the colour edges unless told otherwise; a
+    # depth EXR is taken as a renderer's exact depth
+    refine = args.refine or ("guided" if args.disparity is not None else "off")
+    result = _plan_and_refocus(args, passes, A, d_f, passes.disparity, refine=refine)
+    result.info["refine"] = refine
     result.info["camera"] = camera_info
     result.info["encoding"] = photo.encoding.describe()
     img = result.image
@@ -532,7 +540,7 @@ def _refocus_photo(args) -> int:
     print(f"refocused {W}x{H} ({args.preset}): {i['planes']} planes, largest blur radius "
           f"{i['largest_radius_px']:.1f} px, fill {100 * i['fill_fraction']:.1f} % of pixels, "
           f"{'A = K' if args.K is not None else 'A'} = {A:.4g} px, d_f = {d_f:.5g}, "
-          f"{photo.encoding.describe()}, {i['seconds']:.2f} s")
+          f"{photo.encoding.describe()}, disparity refinement {refine}, {i['seconds']:.2f} s")
     for p in written:
         print(f"wrote {p}")
     return 0
@@ -761,6 +769,11 @@ def build_parser() -> argparse.ArgumentParser:
                             "IEC 61966-2-1 curve; EXR and float TIFF are linear)")
     photo.add_argument("--exr", metavar="PATH",
                        help="also write the refocused linear EXR here")
+    photo.add_argument("--refine", choices=["off", "guided", "guided-thin"], default=None,
+                       help="move a predicted disparity's edges onto the colour edges before "
+                            "the split (layers/refine.py): guided (the default with "
+                            "--disparity), guided-thin (also thin structures; about twice the "
+                            "cost), off (the default with --depth)")
     photo.add_argument("--official-focus-range", action="store_true",
                        help="as the official renderer's demo (increase_focus_range): subtract "
                             "half a 1/32 bin from every defocus, r = K max(|d - d_f| - 1/64, 0)")

@@ -17,6 +17,7 @@ A layered render (one view layer per depth group, ``mpib_group_<k>.Combined.*`` 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import re
@@ -325,12 +326,19 @@ class BuiltMPI:
 
 def build_mpi(passes: Passes, blur_parameter: float, preset: str = "default",
               far_limit: float = DEFAULT_FAR_LIMIT, progress=None,
-              background=None) -> BuiltMPI:
+              background=None, refine: str | None = None) -> BuiltMPI:
     """The focus-independent half of :func:`refocus`: the MPI of the passes for the blur
     parameter ``A`` (px per unit disparity; it sets the plane spacing ``2 tol / A``, the
-    edge threshold and how far behind each edge the background is filled)."""
+    edge threshold and how far behind each edge the background is filled).
+
+    ``refine``: ``"guided"`` (or ``"guided-thin"``) for a predicted (monocular)
+    disparity, whose edges are then moved onto the colour edges
+    (:mod:`mpib_validate.layers.refine`); None or ``"off"`` (the preset's setting, off in
+    every preset) for a renderer's exact depth."""
     _check_camera(blur_parameter, 0.0)
     p = get_preset(preset)
+    if refine is not None:
+        p = dataclasses.replace(p, passes=dataclasses.replace(p.passes, refine=refine))
     D = passes_disparity(passes, far_limit)
     # The film alpha travels as a fourth colour channel (premultiplied like the colour),
     # so the output's alpha is its normalised blur: what the refocused view covers. An
@@ -392,10 +400,13 @@ def result_info(passes: Passes, built: BuiltMPI, preset: str, blur_parameter: fl
 
 def refocus(passes: Passes, blur_parameter: float, focus_disparity: float,
             preset: str = "default", far_limit: float = DEFAULT_FAR_LIMIT,
-            progress=None, background=None) -> RefocusResult:
+            progress=None, background=None, refine: str | None = None) -> RefocusResult:
     """Build the MPI from the passes (:func:`build_mpi`) and render it with the preset's
     settings (:func:`render_built`). To refocus one picture many times, keep the MPI:
     :class:`mpib_validate.session.RefocusSession`.
+
+    ``refine``: the disparity refinement for a predicted disparity (see
+    :func:`build_mpi`); None keeps the preset's (off).
 
     ``background``: optional ``(colour, valid)`` of what lies behind the foreground (see
     :func:`read_background`); it replaces the hidden-background fill where valid.
@@ -410,7 +421,7 @@ def refocus(passes: Passes, blur_parameter: float, focus_disparity: float,
     if progress is not None:
         first = lambda f: progress(0.5 * f)  # noqa: E731
         second = lambda f: progress(0.5 + 0.5 * f)  # noqa: E731
-    built = build_mpi(passes, blur_parameter, preset, far_limit, first, background)
+    built = build_mpi(passes, blur_parameter, preset, far_limit, first, background, refine)
     img = render_built(built, blur_parameter, focus_disparity, preset, second)
     return RefocusResult(img, result_info(passes, built, preset, blur_parameter,
                                           focus_disparity, time.perf_counter() - t0))

@@ -4,7 +4,9 @@ Suites (each writes ``<suite>.md`` and ``<suite>.json``): ``tracer`` (numpy agai
 Dr.Jit), ``compositor`` (Eq. 1, the middle setting, the exact renderer, the fast paths,
 and the ray tracer, Mitsuba and Cycles at a sweep of sample counts, on exact layers),
 ``refocus`` (from colour + depth: the MPI with and without the fill, the presets, the
-classical baselines, Blender's Defocus node; ``mpib refocus`` at 1920x1080), ``addon``
+classical baselines, Blender's Defocus node; ``mpib refocus`` at 1920x1080), ``photos``
+(the same from a degraded, predicted-looking disparity, with and without the guided
+refinement, against the Defocus node fed it; a real photograph), ``addon``
 (the Blender extension's operator at 1920x1080, per preset), ``blender`` (ordinary 3D
 Blender scenes against Cycles' depth of field: every preset, the Defocus node, the
 exact MPI renderer; emitter radius and energy),
@@ -17,8 +19,8 @@ from __future__ import annotations
 import importlib
 from pathlib import Path
 
-SUITES = ("tracer", "compositor", "refocus", "addon", "hardcases", "references", "scaling",
-          "blender")
+SUITES = ("tracer", "compositor", "refocus", "photos", "addon", "hardcases", "references",
+          "scaling", "blender")
 
 
 def run_bench(out: Path, suite: str = "all", quick: bool = True, executor=None) -> dict:

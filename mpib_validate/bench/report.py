@@ -189,21 +189,14 @@ def photo_figure(path: Path) -> dict:
     import time
 
     from PIL import Image
-    from scipy import ndimage
-    from skimage import data
 
+    from mpib_validate.bench.photos import load_motorcycle
     from mpib_validate.compositor import baselines
     from mpib_validate.compositor.composite import composite
     from mpib_validate.layers.passes import layers_from_passes
     from mpib_validate.io.preview import to_uint8
-    from mpib_validate.cards.textures import srgb_to_linear
 
-    left, _, disp = data.stereo_motorcycle()
-    known = np.isfinite(disp)
-    _, (iy, ix) = ndimage.distance_transform_edt(~known, return_indices=True)
-    disp = disp[iy, ix]
-    D = (disp - disp.min()) / (disp.max() - disp.min())
-    rgb = srgb_to_linear(left.astype(np.float64) / 255.0).astype(np.float32)
+    rgb, D = load_motorcycle()
     A = 0.02 * rgb.shape[1]
     rows, info = [], {"width": int(rgb.shape[1]), "height": int(rgb.shape[0]), "A": A}
     t0 = time.perf_counter()
@@ -283,6 +276,12 @@ def write_index(out: Path, results: dict) -> Path:
         if b.get("crops"):
             lines.append(f"![blender crops]({b['crops']})")
         lines.append("")
+    if "photos" in results and results["photos"].get("figure"):
+        lines += ["## Photographs and predicted disparity", "",
+                  "The Middlebury motorcycle refocused from its exact stereo disparity, from "
+                  "that disparity degraded as a monocular estimator errs, and with the guided "
+                  "refinement; boundary crops below (see [photos.md](photos.md)).", "",
+                  f"![photos]({results['photos']['figure']['path']})", ""]
     if "scaling" in results:
         lines += ["## Scaling", "", "![scaling](scaling.png)", ""]
     lines += ["## Suites", ""]

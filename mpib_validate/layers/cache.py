@@ -91,7 +91,7 @@ def store(folder, key: str, built) -> list[Path]:
 
 def refocus_cached(passes, blur_parameter: float, focus_disparity: float, folder,
                    preset: str = "default", far_limit: float | None = None, background=None,
-                   progress=None):
+                   progress=None, refine: str | None = None):
     """:func:`mpib_validate.refocus.refocus` with the MPI taken from, or added to, the
     cache in ``folder``. Returns ``(result, reused, entry)``: the result (equal to a
     fresh refocus), whether the MPI came from the cache, and its ``.npz`` path."""
@@ -105,13 +105,16 @@ def refocus_cached(passes, blur_parameter: float, focus_disparity: float, folder
     far_limit = DEFAULT_FAR_LIMIT if far_limit is None else far_limit
     _check_camera(blur_parameter, focus_disparity)
     t0 = time.perf_counter()
-    key = cache_key(passes_digest(passes, background), preset, far_limit, blur_parameter)
+    # the refinement changes the MPI: it is part of the preset's name in the key
+    named = preset if refine in (None, "off") else f"{preset}+refine={refine}"
+    key = cache_key(passes_digest(passes, background), named, far_limit, blur_parameter)
     built = load(folder, key)
     reused = built is not None
     second = None if progress is None else (lambda f: progress(0.5 + 0.5 * f))  # noqa: E731
     if built is None:
         first = None if progress is None else (lambda f: progress(0.5 * f))  # noqa: E731
-        built = build_mpi(passes, blur_parameter, preset, far_limit, first, background)
+        built = build_mpi(passes, blur_parameter, preset, far_limit, first, background,
+                          refine)
         store(folder, key, built)
     img = render_built(built, blur_parameter, focus_disparity, preset, second)
     info = result_info(passes, built, preset, blur_parameter, focus_disparity,

@@ -92,6 +92,11 @@ class PassesSettings:
             alone). Fewer seams where one surface crosses groups, and one layer per plane
             of a slab; two surfaces closer than this are then side by side rather than
             one in front (an error within a band of that many pixels).
+        refine: ``"off"`` (the disparity is trusted: exact depth from a renderer) or
+            ``"guided"`` (an unreliable, e.g. predicted, disparity: its edges are moved
+            onto the colour edges first, :func:`mpib_validate.layers.refine.refine_disparity`),
+            or ``"guided-thin"`` (the same, and structures thinner than the prediction's
+            blur recovered from the local mean: ``thin=True``, no ``flip_px`` limit).
     """
 
     tolerance_px: float = 0.5
@@ -102,6 +107,7 @@ class PassesSettings:
     unmix_edges: bool = True
     split: str = "linear"
     slab_px: float = 0.0
+    refine: str = "off"
 
 
 @dataclass
@@ -320,6 +326,15 @@ def sheets_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
         raise PassError(f"the blur parameter must be > 0 (a zero aperture has no defocus), "
                         f"got {blur_parameter}")
     H, W = D.shape
+    if settings.refine in ("guided", "guided-thin"):
+        from mpib_validate.layers.refine import refine_disparity
+
+        thin = settings.refine == "guided-thin"
+        D = refine_disparity(rgb, D, blur_parameter, thin=thin,
+                             **({"flip_px": max(H, W)} if thin else {}))
+    elif settings.refine != "off":
+        raise ValueError(f"refine must be 'off', 'guided' or 'guided-thin', got "
+                         f"{settings.refine!r}")
     if background is not None:
         known_rgb, known, known_d = (tuple(background) + (None,))[:3]
         shapes = [np.shape(known_rgb)[:2], np.shape(known)]

@@ -1,0 +1,175 @@
+"""Predicted-looking disparity: the seeded degradation, the guided refinement, and the
+photos bench suite on a tiny run (the numbers come from `mpib bench --suite photos`)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mpib_validate.cards.degrade import degrade_disparity
+from mpib_validate.layers.passes import PassesSettings, layers_from_passes
+from mpib_validate.layers.refine import guided_filter, refine_disparity
+
+
+def _two_regions(seed=0, size=64, edge=32):
+    """Left of column ``edge``: a near red surface (d = 0.5); right: a far blue one
+    (d = 0.1); colour with 1 % seeded noise so the guide is not a perfect step."""
+    rng = np.random.default_rng(seed)
+    colour = np.empty((size, size, 3))
+    colour[:, :edge] = (0.6, 0.15, 0.1)
+    colour[:, edge:] = (0.1, 0.2, 0.5)
+    colour *= 1.0 + 0.01 * rng.standard_normal(colour.shape)
+    D = np.full((size, size), 0.1)
+    D[:, :edge] = 0.5
+    return colour, D
+
+
+def test_degradation_is_seeded_and_deterministic():
+    _, D = _two_regions()
+    a, b = degrade_disparity(D, 3), degrade_disparity(D, 3)
+    assert np.array_equal(a, b)  # bit for bit
+    assert not np.array_equal(a, degrade_disparity(D, 4))  # the seed matters
+    assert a.shape == D.shape and np.all(a >= 0) and np.all(np.isfinite(a))
+
+
+def test_degradation_with_every_step_off_is_the_identity():
+    _, D = _two_regions()
+    assert np.array_equal(degrade_disparity(D, 0, blur_px=0, down=1, shift_px=0, noise=0), D)
+
+
+def test_degradation_spreads_and_shifts_the_edge():
+    """Blur + 4x down/up spread the step over several pixels; the shift moves its
+    mid-crossing by shift_px * |cos(angle)| along x (angle drawn from the seed)."""
+    _, D = _two_regions()
+    g = degrade_disparity(D, 1, noise=0.0)
+    ramp = (g > 0.11) & (g < 0.49)
+    assert ramp[32].sum() >= 4  # sigma 2 px alone gives ~ +-2 sigma of ramp
+    # the mid-crossing per row, against the true edge at x = 31.5 (between columns)
+    rows = [np.interp(0.3, g[y, ::-1], np.arange(63, -1, -1)) for y in range(16, 48)]
+    angle = np.random.default_rng(1).uniform(0.0, 2.0 * math.pi)
+    # the shift moves the map by +1.5 cos(angle) px in x; the 4x grid aligns the step
+    # to within its half-cell of 2 px and bilinear interpolation is exact on a ramp, so
+    # the crossing is within 2 px of 31.5 + shift
+    assert abs(np.mean(rows) - (31.5 + 1.5 * math.cos(angle))) <= 2.0
+
+
+def test_guided_filter_with_a_flat_guide_is_the_box_mean_of_the_box_mean():
+    """A constant guide has zero variance: a = 0, b = mean(p), q = box(box(p))."""
+    from mpib_validate.layers.refine import box_mean
+
+    rng = np.random.default_rng(0)
+    p = rng.random((20, 24))
+    q = guided_filter(np.full((20, 24, 3), 0.5), p, 2, 1e-3)
+    np.testing.assert_allclose(q, box_mean(box_mean(p, 2), 2), atol=1e-12)
+
+
+def _crossing(D, mid=0.3):
+    """First column, per row, where the disparity drops below ``mid`` (the far side)."""
+    return np.argmax(D < mid, axis=1)
+
+
+def test_refinement_moves_a_blurred_edge_back_onto_the_colour_edge():
+    colour, D = _two_regions()
+    A = 40.0  # jump = 16 px of blur radius: an edge that matters
+    # the prediction: blurred (sigma 2 px) and shifted 2 px into the far (blue) side
+    pred = degrade_disparity(D, 0, blur_px=2.0, down=1, shift_px=0.0, noise=0.0)
+    pred = np.roll(pred, 2, axis=1)
+    pred[:, :2] = 0.5
+    rows = slice(8, 56)
+    # without the refinement the split follows the prediction: 2 px off the colour edge
+    assert np.all(_crossing(pred)[rows] == 34)
+    ref = refine_disparity(colour, pred, A)
+    # the first blue column, exactly: the colour step is 0.4 against 1 % noise
+    assert np.all(_crossing(ref)[rows] == 32)
+    # and each side takes its surface's disparity: the ramp is gone (within keep_px of
+    # blur radius = 0.5 px, i.e. 0.5 / A in disparity)
+    tol = 0.5 / A
+    assert np.all(np.abs(ref[rows, :32] - 0.5) <= tol)
+    assert np.all(np.abs(ref[rows, 32:] - 0.1) <= tol)
+
+
+def test_refinement_leaves_a_smooth_surface_alone():
+    """A tilted plane spanning less than jump_px over the window is not an edge."""
+    colour, _ = _two_regions()
+    x = np.arange(64)[None, :] * np.ones((64, 1))
+    D = 0.2 + 0.001 * x  # 0.04 px of blur radius per pixel at A = 40
+    np.testing.assert_array_equal(refine_disparity(colour, D, 40.0), D)
+
+
+def test_refine_option_in_passes_settings():
+    colour, D = _two_regions()
+    pred = np.roll(degrade_disparity(D, 0, blur_px=2.0, down=1, shift_px=0.0, noise=0.0), 2, 1)
+    off, _ = layers_from_passes(colour, pred, 40.0, PassesSettings())
+    on, _ = layers_from_passes(colour, pred, 40.0, PassesSettings(refine="guided"))
+    assert off.plane_count != on.plane_count or any(
+        not np.array_equal(a.rgba, b.rgba) for a, b in zip(off.layers, on.layers))
+    with pytest.raises(ValueError, match="refine"):
+        layers_from_passes(colour, pred, 40.0, PassesSettings(refine="matting"))
+
+
+def test_photos_suite_on_one_tiny_scene_per_family(tmp_path):
+    from mpib_validate.bench import photos
+
+    r = photos.run(tmp_path, seeds=range(1), size=32, ref_spp=64, hd=False, figure=False)
+    methods = {row["method"] for row in r["rows"]}
+    for preset in ("draft", "default", "best"):
+        for kind in ("exact (bound)", "degraded", "degraded + guided"):
+            assert f"{preset} {kind}" in methods
+    for m in ("default exact + guided", "default degraded + guided-thin",
+              "default exact + guided-thin"):
+        assert m in methods
+    for row in r["rows"]:
+        assert math.isfinite(row["psnr"]) and math.isfinite(row["psnr_ob"])
+    assert (tmp_path / "photos.md").read_text().count("| default degraded |") == 2
+    assert (tmp_path / "photos.json").stat().st_size > 0
+
+
+def test_refinement_on_tiles_equals_the_whole_image(monkeypatch):
+    """The guided filter runs on boxes around the edges with a 2 r margin; with one tile
+    the size of the image the result must be the same: it is a threshold of the filter
+    output (which differs by rounding at most) and the windows' extremes (exact)."""
+    from mpib_validate.layers import refine
+
+    colour, D = _two_regions(size=96, edge=40)
+    pred = degrade_disparity(D, 2)
+    small = refine_disparity(colour, pred, 40.0)
+    monkeypatch.setattr(refine, "TILE", 128)
+    np.testing.assert_array_equal(small, refine_disparity(colour, pred, 40.0))
+
+
+def test_refocus_takes_the_refine_option():
+    from mpib_validate.refocus import Passes, refocus
+
+    colour, D = _two_regions()
+    pred = np.roll(degrade_disparity(D, 0, blur_px=2.0, down=1, shift_px=0.0, noise=0.0), 2, 1)
+    passes = Passes(colour.astype(np.float32), 1.0 / pred, "c", "d")
+    off = refocus(passes, 40.0, 0.1).image
+    on = refocus(passes, 40.0, 0.1, refine="guided").image
+    # focus on the far side: the near red surface blurs by 16 px; moving its edge 2 px
+    # changes the image near the edge
+    assert np.abs(on - off).max() > 0.01
+    assert np.array_equal(off, refocus(passes, 40.0, 0.1, refine="off").image)
+
+
+def test_guided_thin_gives_a_thin_wire_its_disparity_back():
+    """A 2 px wire (d = 0.5, white) before a far grey wall (d = 0.1), its disparity blurred
+    (sigma 2 px): the blur keeps the local mean, so over a 13 px window the wire's
+    near fraction 2/13 and the mean give back its jump; the window's maximum alone keeps
+    about 0.4 of it (2 px of a sigma-2 Gaussian)."""
+    colour = np.full((48, 48, 3), 0.2)
+    colour[:, 23:25] = 0.9
+    D = np.full((48, 48), 0.1)
+    D[:, 23:25] = 0.5
+    pred = degrade_disparity(D, 0, blur_px=2.0, down=1, shift_px=0.0, noise=0.0)
+    assert pred[24, 23] < 0.3  # the prediction has lost most of the wire
+    plain = refine_disparity(colour, pred, 40.0)
+    thin = refine_disparity(colour, pred, 40.0, thin=True, flip_px=48)
+    assert plain[24, 23] < 0.3
+    # within 0.02 (0.8 px of blur radius at A = 40): the Gaussian's tails beyond the
+    # 13 px window (3 sigma) and the window's clipped mean at the wire's edge
+    np.testing.assert_allclose(thin[8:40, 23:25], 0.5, atol=0.02)
+    # the wall keeps its value, or the prediction's within keep_px (0.5 px / A)
+    np.testing.assert_allclose(thin[8:40, :18], 0.1, atol=0.5 / 40.0)
+    np.testing.assert_allclose(thin[8:40, 29:], 0.1, atol=0.5 / 40.0)
