@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test test-all test-blender-versions bench addon clean
+.PHONY: setup demo test test-all test-blender-versions bench addon official clean
 
 $(STAMP): pyproject.toml constraints.txt scripts/setup.sh
 	bash scripts/setup.sh $(PY) $(VENV)
@@ -31,6 +31,15 @@ test-blender-versions:
 
 bench: $(STAMP)
 	$(BIN)/mpib bench --out out/bench
+
+# The optional extra for `mpib bench --suite official`: CPU torch 2.13.0 (about 200 MB).
+# TORCH_INDEX is an extra index for the CPU build; empty (the default) uses pip's own
+# indexes, which on the project's machines hold that CPU build. Elsewhere (PyPI's Linux
+# torch is the CUDA one): make official TORCH_INDEX=https://download.pytorch.org/whl/cpu
+TORCH_INDEX ?=
+official: $(STAMP)
+	$(BIN)/python -m pip install -q --disable-pip-version-check -c constraints.txt \
+		$(if $(TORCH_INDEX),--extra-index-url $(TORCH_INDEX)) -e ".[official]"
 
 addon: $(STAMP)
 	$(BIN)/python scripts/build_addon.py --out dist

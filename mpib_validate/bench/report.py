@@ -282,6 +282,15 @@ def write_index(out: Path, results: dict) -> Path:
                   "that disparity degraded as a monocular estimator errs, and with the guided "
                   "refinement; boundary crops below (see [photos.md](photos.md)).", "",
                   f"![photos]({results['photos']['figure']['path']})", ""]
+    if "official" in results:
+        o = results["official"]
+        lines += ["## Against the official MPIB renderer", ""]
+        if o.get("skipped"):
+            lines += [f"The suite was {o['skipped']} (`make official` installs CPU torch).", ""]
+        else:
+            lines += ["Our Eq. 1 and the official renderer's computation (torch, CPU, 2 threads) "
+                      "side by side on the same 32 planes ([official.md](official.md)):", ""]
+            lines += [f"- {h}" for h in o["summary"]["headlines"]] + [""]
     if "scaling" in results:
         lines += ["## Scaling", "", "![scaling](scaling.png)", ""]
     lines += ["## Suites", ""]
