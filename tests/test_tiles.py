@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mpib_validate.bench.photo import photo_passes
+from mpib_validate.bench.photosize import photo_passes
 from mpib_validate.compositor import composite as C
 from mpib_validate.layers import mpi as M
 from mpib_validate.layers.passes import PassesSettings, depth_to_disparity, layers_from_passes
@@ -101,3 +101,21 @@ def test_tiled_composite_matches_with_replication_at_the_edges():
         b = C.render_subapertures(_dense_copy(tiled), A, 0.1, k,
                                   C.CompositeSettings(tiles=False))
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-5 * float(np.abs(b).max()))
+
+
+def test_photo_too_large_for_the_limit_is_refused_with_the_estimate(tmp_path):
+    """A 1000 x 667 smooth photograph needs a few hundred MB (its layers stored as
+    tiles); under a 0.1 GB limit `mpib refocus` refuses it before any work, in one line
+    naming the option and the estimate, and writes nothing."""
+    from clirun import one_line_error, run
+
+    from mpib_validate.io.exr import channels_from_rgba, write_exr
+
+    colour, depth, A, d_f = photo_passes(0, 1000, 667)
+    write_exr(tmp_path / "in.exr", {**channels_from_rgba(colour),
+                                    "Depth.Z": depth.astype(np.float32)})
+    line = one_line_error(*run("refocus", tmp_path / "in.exr", "-o", tmp_path / "out.exr",
+                               "--blur-parameter", A, "--focus-disparity", d_f,
+                               "--max-memory-gb", 0.1)[::2])
+    assert "--max-memory-gb" in line and "estimated memory" in line and "planes" in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in.exr"]

@@ -428,8 +428,8 @@ def correlate_batch(windows: np.ndarray, kernel: np.ndarray, method: str = "auto
         spec *= kf
         full = fft.irfft2(spec, s=sh, axes=(1, 2), workers=-1)
         out[a:a + per] = full[:, 2 * R:Hw, 2 * R:Ww]
-    out[np.abs(out) < FFT_FLOOR * np.asarray(peak, np.float64)] = 0.0
-    np.maximum(out, 0.0, out=out)
+    # |v| below the floor -> 0, then v >= 0: in one pass, v below the floor -> 0
+    out[out < FFT_FLOOR * np.asarray(peak, np.float64)] = 0.0
     return out
 
 

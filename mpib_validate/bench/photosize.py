@@ -121,7 +121,7 @@ def _worker(args):
 
 def run(out: Path, quick: bool = True) -> dict:
     """Time the presets on generated photographs, each in a fresh process (so that the
-    peak memory is that row's); writes ``photo.json`` and ``photo.md``."""
+    peak memory is that row's); writes ``photosize.json`` and ``photosize.md``."""
     from mpib_validate.io.atomic import write_text
     from mpib_validate.bench.machine import machine_info
 
@@ -135,11 +135,11 @@ def run(out: Path, quick: bool = True) -> dict:
         with ctx.Pool(1, maxtasksperchild=1) as pool:
             row = pool.apply(_worker, ((w, h, preset),))
         rows.append(row)
-        print(f"bench photo: {row['size']} {preset}: {row['cpu_s']:.1f} s CPU, "
+        print(f"bench photosize: {row['size']} {preset}: {row['cpu_s']:.1f} s CPU, "
               f"{row['wall_s']:.1f} s wall, peak {row['peak_rss_bytes'] / 2**30:.2f} GB",
               flush=True)
-    result = {"suite": "photo", "quick": quick, "machine": machine_info(), "rows": rows}
-    write_text(out / "photo.json", json.dumps(result, indent=2) + "\n")
+    result = {"suite": "photosize", "quick": quick, "machine": machine_info(), "rows": rows}
+    write_text(out / "photosize.json", json.dumps(result, indent=2) + "\n")
     lines = ["# Photo-sized refocus (generated smooth predicted-like disparity)", "",
              "Each row in a fresh process; CPU time of that process (its threads summed), "
              "wall time beside it; peak = max resident memory of the process.", "",
@@ -148,5 +148,5 @@ def run(out: Path, quick: bool = True) -> dict:
     lines += [f"| {r['size']} | {r['preset']} | {r['planes']} | {r['largest_radius_px']:.1f} | "
               f"{r['cpu_s']:.1f} | {r['wall_s']:.1f} | {r['peak_rss_bytes'] / 2**30:.2f} | "
               f"{r['estimate_bytes'] / 2**30:.2f} |" for r in rows]
-    write_text(out / "photo.md", "\n".join(lines) + "\n")
+    write_text(out / "photosize.md", "\n".join(lines) + "\n")
     return result
