@@ -227,6 +227,10 @@ def _window_cost(h: int, w: int, taps: int) -> float:
 
 #: Output tile sides (px, multiples of the storage tile) the compositor chooses from.
 _TILE_SIDES = (64, 128, 256, 512)
+#: Side (px) of the cells on which a layer's content is located for the tile plan (a
+#: divisor of the storage tile): the kept tiles are those within the kernel radius,
+#: rounded up to this, of content.
+_FINE = 16
 
 
 def _tile_plan(layer: Layer, R: int, taps: int, box, canvas):
@@ -236,14 +240,14 @@ def _tile_plan(layer: Layer, R: int, taps: int, box, canvas):
     tiles); ``None`` when one window over the whole box costs less."""
     by0, by1, bx0, bx1 = box
     best = _window_cost(by1 - by0 + 2 * R, bx1 - bx0 + 2 * R, taps), None
-    occ = layer.occupancy(canvas, _TILE)
-    e = -(-R // _TILE)  # storage tiles a window reaches beyond its own
+    occ = layer.occupancy(canvas, _FINE)
+    e = -(-R // _FINE)  # fine cells a window reaches beyond its tile
     if e:
         from scipy import ndimage
 
         occ = ndimage.binary_dilation(occ, np.ones((2 * e + 1, 2 * e + 1), bool))
     for T in _TILE_SIDES:
-        f = T // _TILE
+        f = T // _FINE
         ny, nx = -(-occ.shape[0] // f), -(-occ.shape[1] // f)
         grid = np.zeros((ny * f, nx * f), bool)
         grid[:occ.shape[0], :occ.shape[1]] = occ

@@ -127,10 +127,10 @@ class Layer:
                                                          b0 - tx[i]:b1 - tx[i]]
 
     def occupancy(self, canvas: tuple[int, int], T: int = TILE_PX) -> np.ndarray:
-        """Boolean map over the canvas-aligned tiles of side ``T`` (a multiple of
-        :data:`TILE_PX`, or any side for a dense layer): True where the tile may hold
-        content of this layer (exact for a dense layer; for a tiled one, where a stored
-        tile lies)."""
+        """Boolean map over the canvas-aligned tiles of side ``T`` (a multiple or a
+        divisor of :data:`TILE_PX`, or any side for a dense layer): True where the tile
+        holds content of this layer (for a tiled layer and ``T`` a multiple of the
+        storage tile: where a stored tile lies)."""
         ny, nx = -(-canvas[0] // T), -(-canvas[1] // T)
         occ = np.zeros((ny, nx), bool)
         if self.tiles is not None and T % self.tiles[1].shape[1] == 0:
@@ -138,6 +138,15 @@ class Layer:
             keys = self.tiles[0]
             occ[keys[:, 0] // f, keys[:, 1] // f] = True
             return occ
+        if self.tiles is not None and self.tiles[1].shape[1] % T == 0:
+            keys, data = self.tiles
+            S = data.shape[1]
+            f = S // T
+            sub = (data != 0).any(axis=3).reshape(len(keys), f, T, f, T).any(axis=(2, 4))
+            big = np.zeros((-(-canvas[0] // S) * f, -(-canvas[1] // S) * f), bool)
+            for (ty, tx), blk in zip(keys, sub):
+                big[ty * f:ty * f + f, tx * f:tx * f + f] = blk
+            return big[:ny, :nx]
         y0, y1, x0, x1 = self.box
         ty0, tx0 = y0 // T, x0 // T
         ty1, tx1 = -(-y1 // T), -(-x1 // T)
