@@ -90,12 +90,17 @@ def time_refocus(width: int, height: int, preset: str, seed: int = 0) -> dict:
     """One refocus of the generated input: CPU and wall seconds, planes, peak memory
     growth (max RSS of this process, which should be fresh, minus its RSS before)."""
     from mpib_validate import refocus as R
-    from mpib_validate.budget import refocus_estimate
+    from mpib_validate.budget import format_bytes, memory_limit, refocus_estimate
 
     colour, depth, A, d_f = photo_passes(seed, width, height)
     passes = R.Passes(colour, depth, "generated", "generated", None, None)
     D = R.depth_to_disparity(depth)
     est = refocus_estimate(D, A, d_f, preset)
+    if est.bytes > memory_limit():  # as `mpib refocus` would refuse it
+        return {"size": f"{width}x{height}", "preset": preset, "planes": est.planes,
+                "estimate_bytes": est.bytes,
+                "skipped": f"estimated {format_bytes(est.bytes)}, over the limit of "
+                           f"{format_bytes(memory_limit())} (half of this machine)"}
     before = _rss_now()
     c0, w0 = time.process_time(), time.perf_counter()
     res = R.refocus(passes, A, d_f, preset)
@@ -135,6 +140,10 @@ def run(out: Path, quick: bool = True) -> dict:
         with ctx.Pool(1, maxtasksperchild=1) as pool:
             row = pool.apply(_worker, ((w, h, preset),))
         rows.append(row)
+        if "skipped" in row:
+            print(f"bench photosize: {row['size']} {preset}: skipped, {row['skipped']}",
+                  flush=True)
+            continue
         print(f"bench photosize: {row['size']} {preset}: {row['cpu_s']:.1f} s CPU, "
               f"{row['wall_s']:.1f} s wall, peak {row['peak_rss_bytes'] / 2**30:.2f} GB",
               flush=True)
@@ -145,7 +154,9 @@ def run(out: Path, quick: bool = True) -> dict:
              "wall time beside it; peak = max resident memory of the process.", "",
              "| size | preset | planes | largest radius (px) | CPU (s) | wall (s) | peak (GB) "
              "| estimate (GB) |", "|---|---|---|---|---|---|---|---|"]
-    lines += [f"| {r['size']} | {r['preset']} | {r['planes']} | {r['largest_radius_px']:.1f} | "
+    lines += [f"| {r['size']} | {r['preset']} | {r['planes']} | skipped: {r['skipped']} | "
+              f"| | | {r['estimate_bytes'] / 2**30:.2f} |" if "skipped" in r else
+              f"| {r['size']} | {r['preset']} | {r['planes']} | {r['largest_radius_px']:.1f} | "
               f"{r['cpu_s']:.1f} | {r['wall_s']:.1f} | {r['peak_rss_bytes'] / 2**30:.2f} | "
               f"{r['estimate_bytes'] / 2**30:.2f} |" for r in rows]
     write_text(out / "photosize.md", "\n".join(lines) + "\n")

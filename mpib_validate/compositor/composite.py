@@ -260,6 +260,15 @@ def _tile_plan(layer: Layer, R: int, taps: int, box, canvas):
     return best[1]
 
 
+def _clamp(blurred: np.ndarray) -> np.ndarray:
+    """Blurred alpha clipped to [0, 1], colour and extra channels to >= 0 (in place):
+    rounding cannot then leave the range of a blur of valid content."""
+    np.clip(blurred[..., 3], 0.0, 1.0, out=blurred[..., 3])
+    np.maximum(blurred[..., :3], 0.0, out=blurred[..., :3])
+    np.maximum(blurred[..., 4:], 0.0, out=blurred[..., 4:])
+    return blurred
+
+
 def _blur_parts(layer: Layer, rho: float, box, canvas, settings: CompositeSettings, cell=None):
     """The blurred layer over ``box`` as ``(rect, blurred)`` parts, canvas rectangles
     (y0, y1, x0, x1) inside ``box``; the layer's blur is zero elsewhere.
@@ -274,14 +283,19 @@ def _blur_parts(layer: Layer, rho: float, box, canvas, settings: CompositeSettin
     Otherwise the box is one part."""
     reduced = settings.reduce_above is not None and abs(rho) > settings.reduce_above
     if not settings.crop or settings.backend != "numpy" or reduced:
-        yield box, _blur_layer(layer, rho, box, canvas, settings, cell)
+        yield box, _clamp(_blur_layer(layer, rho, box, canvas, settings, cell))
         return
     k = _layer_kernel(rho, settings, cell)
     R = _k.kernel_radius(k)
-    plan = (_tile_plan(layer, R, k.size, box, canvas) if k.size > 1 and settings.tiles
-            else None)
+    plan = None
+    if k.size > 1 and settings.tiles:
+        # the k x k sub-aperture passes ask again for the same layer, radius and box
+        key = ("tile plan", R, k.size, tuple(box), tuple(canvas))
+        if key not in layer._memo:
+            layer._memo[key] = _tile_plan(layer, R, k.size, box, canvas)
+        plan = layer._memo[key]
     if plan is None:
-        yield box, _correlate(_padded_region(layer, canvas, box, R), k, settings)
+        yield box, _clamp(_correlate(_padded_region(layer, canvas, box, R), k, settings))
         return
     T, ty, tx = plan
     peak = _k._channel_peaks(layer.tiles[1] if layer.tiles is not None else layer.rgba)
@@ -291,7 +305,7 @@ def _blur_parts(layer: Layer, rho: float, box, canvas, settings: CompositeSettin
         rects = [(y * T, y * T + T, x * T, x * T + T) for y, x in zip(ty[a:a + per],
                                                                       tx[a:a + per])]
         windows = np.stack([_padded_region(layer, canvas, r, R) for r in rects])
-        blurred = _k.correlate_batch(windows, k, settings.conv, peak)
+        blurred = _clamp(_k.correlate_batch(windows, k, settings.conv, peak))
         for (y0, y1, x0, x1), b in zip(rects, blurred):
             c = (max(y0, by0), min(y1, by1), max(x0, bx0), min(x1, bx1))
             if c[0] < c[1] and c[2] < c[3]:
@@ -370,9 +384,6 @@ def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
                 group_tiles = np.zeros((ny, nx), bool)
             group_id = slab_of[i]
         for rect, blurred in _blur_parts(layer, rho, box, canvas, settings, cell):
-            np.clip(blurred[..., 3], 0.0, 1.0, out=blurred[..., 3])
-            np.maximum(blurred[..., :3], 0.0, out=blurred[..., :3])
-            np.maximum(blurred[..., 4:], 0.0, out=blurred[..., 4:])
             y0, y1, x0, x1 = rect
             if layer.group is None:
                 region = acc[y0 - m:y1 - m, x0 - m:x1 - m]

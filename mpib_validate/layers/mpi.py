@@ -56,7 +56,7 @@ class Layer:
             *summed*; groups are composited with "over".
     """
 
-    __slots__ = ("disparity", "_rgba", "y0", "x0", "group", "tiles", "_shape")
+    __slots__ = ("disparity", "_rgba", "y0", "x0", "group", "tiles", "_shape", "_memo")
 
     def __init__(self, disparity: float, rgba: np.ndarray | None, y0: int, x0: int,
                  group: int | None = None, tiles=None, shape=None):
@@ -65,6 +65,7 @@ class Layer:
         self.y0, self.x0 = y0, x0
         self.group = group
         self.tiles = tiles
+        self._memo = {}  # derived, read-only: tile lookup, occupancy maps
         if rgba is not None:
             self._shape = tuple(rgba.shape)
         elif tiles is None or shape is None:
@@ -98,6 +99,7 @@ class Layer:
     @rgba.setter
     def rgba(self, value: np.ndarray) -> None:
         self._rgba, self.tiles, self._shape = value, None, tuple(value.shape)
+        self._memo = {}
 
     @property
     def box(self) -> tuple[int, int, int, int]:
@@ -118,19 +120,33 @@ class Layer:
             return
         keys, data = self.tiles
         T = data.shape[1]
-        ty, tx = keys[:, 0] * T, keys[:, 1] * T
-        sel = np.flatnonzero((ty < y0 + H) & (ty + T > y0) & (tx < x0 + W) & (tx + T > x0))
-        for i in sel:
-            a0, a1 = max(ty[i], y0), min(ty[i] + T, y0 + H)
-            b0, b1 = max(tx[i], x0), min(tx[i] + T, x0 + W)
-            out[a0 - y0:a1 - y0, b0 - x0:b1 - x0] = data[i, a0 - ty[i]:a1 - ty[i],
-                                                         b0 - tx[i]:b1 - tx[i]]
+        index = self._memo.get("index")
+        if index is None:
+            index = self._memo["index"] = {(int(a), int(b)): i for i, (a, b) in enumerate(keys)}
+        for ky in range(max(y0, 0) // T, -(-(y0 + H) // T)):
+            for kx in range(max(x0, 0) // T, -(-(x0 + W) // T)):
+                i = index.get((ky, kx))
+                if i is None:
+                    continue
+                ty, tx = ky * T, kx * T
+                a0, a1 = max(ty, y0), min(ty + T, y0 + H)
+                b0, b1 = max(tx, x0), min(tx + T, x0 + W)
+                out[a0 - y0:a1 - y0, b0 - x0:b1 - x0] = data[i, a0 - ty:a1 - ty,
+                                                             b0 - tx:b1 - tx]
 
     def occupancy(self, canvas: tuple[int, int], T: int = TILE_PX) -> np.ndarray:
         """Boolean map over the canvas-aligned tiles of side ``T`` (a multiple or a
         divisor of :data:`TILE_PX`, or any side for a dense layer): True where the tile
         holds content of this layer (for a tiled layer and ``T`` a multiple of the
-        storage tile: where a stored tile lies)."""
+        storage tile: where a stored tile lies). Read-only (kept for reuse)."""
+        key = ("occupancy", tuple(canvas), T)
+        if key not in self._memo:
+            occ = self._occupancy(canvas, T)
+            occ.setflags(write=False)
+            self._memo[key] = occ
+        return self._memo[key]
+
+    def _occupancy(self, canvas, T):
         ny, nx = -(-canvas[0] // T), -(-canvas[1] // T)
         occ = np.zeros((ny, nx), bool)
         if self.tiles is not None and T % self.tiles[1].shape[1] == 0:
