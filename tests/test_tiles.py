@@ -104,18 +104,18 @@ def test_tiled_composite_matches_with_replication_at_the_edges():
 
 
 def test_photo_too_large_for_the_limit_is_refused_with_the_estimate(tmp_path):
-    """A 1000 x 667 smooth photograph needs a few hundred MB (its layers stored as
-    tiles); under a 0.1 GB limit `mpib refocus` refuses it before any work, in one line
-    naming the option and the estimate, and writes nothing."""
+    """A 640 x 427 smooth photograph needs about 0.1 GB (its layers stored as tiles);
+    under a 0.05 GB limit `mpib refocus` refuses it before any work, in one line naming
+    the option and the estimate, and writes nothing."""
     from clirun import one_line_error, run
 
     from mpib_validate.io.exr import channels_from_rgba, write_exr
 
-    colour, depth, A, d_f = photo_passes(0, 1000, 667)
+    colour, depth, A, d_f = photo_passes(0, 640, 427)
     write_exr(tmp_path / "in.exr", {**channels_from_rgba(colour),
                                     "Depth.Z": depth.astype(np.float32)})
     line = one_line_error(*run("refocus", tmp_path / "in.exr", "-o", tmp_path / "out.exr",
                                "--blur-parameter", A, "--focus-disparity", d_f,
-                               "--max-memory-gb", 0.1)[::2])
+                               "--max-memory-gb", 0.05)[::2])
     assert "--max-memory-gb" in line and "estimated memory" in line and "planes" in line
     assert sorted(p.name for p in tmp_path.iterdir()) == ["in.exr"]
