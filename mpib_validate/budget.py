@@ -14,8 +14,9 @@ Refocusing (:func:`refocus_estimate`) follows what ``passes.layers_from_passes``
   ``2 tol / A`` (so the count grows with ``A`` times the disparity range: a colour
   file read as depth, ``d = 1/Z`` up to 1/min(colour), gives thousands);
 - layers: each plane stores premultiplied RGBA float32 (16 B) over the bounding box
-  of its content. Every pixel is shared by the two planes around its disparity; the
-  boxes are taken on blocks of at most 256 x 256 per image and grown by the occlusion
+  of its content, or over its occupied 64 px tiles where those cover at most
+  ``TILED_FILL_MAX`` of the box (a thin band of a smooth depth). Every pixel is shared
+  by the two planes around its disparity; the boxes are taken on blocks of at most 256 x 256 per image and grown by the occlusion
   reach ``A (d_near - d_far)`` of the depth edges in them (the hidden-background fill);
 - compositing: one layer at a time, padded by its kernel radius
   ``R = ceil(A |d - d_f|) + 1`` and blurred by a float64 FFT of its four channels,
@@ -202,9 +203,31 @@ def _presence_extent(s_lo: np.ndarray, s_hi: np.ndarray, n: int, axis: int):
     return first, last
 
 
-def _plane_boxes(D: np.ndarray, planes: np.ndarray, A: float, jump: float):
+def _plane_tile_area(D: np.ndarray, planes: np.ndarray) -> np.ndarray:
+    """Pixels of the canvas-aligned storage tiles (:data:`mpi.TILE_PX`) that may hold
+    each plane: a tile holds plane ``k`` when its disparity range reaches the interval
+    around ``d_k`` (every pixel is shared by the two planes around its disparity)."""
+    from mpib_validate.layers.mpi import TILE_PX as T
+
+    H, W = D.shape
+    n = len(planes)
+    ny, nx = -(-H // T), -(-W // T)
+    v = np.pad(D, ((0, ny * T - H), (0, nx * T - W)), mode="edge").reshape(ny, T, nx, T)
+    lo, hi = v.min(axis=(1, 3)).ravel(), v.max(axis=(1, 3)).ravel()
+    s_lo = np.clip(np.searchsorted(planes, lo, side="right") - 1, 0, n - 1)
+    s_hi = np.clip(np.searchsorted(planes, hi, side="right"), 0, n - 1)
+    diff = np.bincount(s_lo, minlength=n + 1) - np.bincount(s_hi + 1, minlength=n + 1)
+    return np.cumsum(diff[:n]).astype(np.float64) * T * T
+
+
+def _plane_boxes(D: np.ndarray, planes: np.ndarray, A: float, jump: float,
+                 tiles: bool = False):
     """Estimated ``(height, width)`` of each plane's content box (see the module
-    docstring)."""
+    docstring); with ``tiles``, also the pixels each plane stores: its tile area
+    (:func:`_plane_tile_area`) where a layer is kept as tiles
+    (:data:`mpi.TILED_FILL_MAX` of its box or less) and nothing grows it (the
+    hidden-background fill behind a depth edge, whose extent is known only as a box),
+    else its box."""
     H, W = D.shape
     n = len(planes)
     lo, hi, b = _blocks(D)
@@ -235,7 +258,14 @@ def _plane_boxes(D: np.ndarray, planes: np.ndarray, A: float, jump: float):
     g = np.ceil(grow).astype(np.int64)
     h = np.where(h > 0, np.minimum(h + 2 * g, H), 0)
     w = np.where(w > 0, np.minimum(w + 2 * g, W), 0)
-    return h, w
+    if not tiles:
+        return h, w
+    from mpib_validate.layers.mpi import TILED_FILL_MAX
+
+    box = h.astype(np.float64) * w
+    area = _plane_tile_area(D, planes)
+    stored = np.where((g == 0) & (area <= TILED_FILL_MAX * box), area, box)
+    return h, w, stored
 
 
 def _edge_fraction(D: np.ndarray, jump: float) -> float:
@@ -349,8 +379,9 @@ def refocus_estimate(disparity: np.ndarray, blur_parameter: float, focus_dispari
     else:
         n_planes = len(planes)
         rho = A * (planes - focus_disparity)
-        hs, ws = _plane_boxes(D, planes, A, p.passes.jump_px / A)
-        layers = int(16 * np.sum(hs.astype(np.float64) * ws)) + PLANE_BYTES * n_planes
+        hs, ws, tiled = _plane_boxes(D, planes, A, p.passes.jump_px / A, tiles=True)
+        layers = int(16 * np.sum(np.minimum(hs.astype(np.float64) * ws, tiled))
+                     ) + PLANE_BYTES * n_planes
     blur = kern = 0
     kernels_total = 0
     for h, w, r in zip(hs, ws, rho):

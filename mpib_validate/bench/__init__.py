@@ -11,7 +11,9 @@ refinement, against the Defocus node fed it; a real photograph), ``addon``
 Blender scenes against Cycles' depth of field: every preset, the Defocus node, the
 exact MPI renderer; emitter radius and energy),
 ``hardcases`` (each named generator case, per method), ``references`` (Mitsuba and
-Cycles time and noise against samples per pixel), ``scaling`` and ``official`` (the
+Cycles time and noise against samples per pixel), ``scaling``, ``photosize``
+(``mpib refocus`` per preset on generated photographs with a smooth predicted-like
+depth, 1000x667 to 6000x4000, CPU time and peak memory) and ``official`` (the
 official MPIB renderer's computation in CPU torch on the same 32 planes, side by side;
 skipped when the optional torch extra is absent). ``index.md`` gathers the headlines, Pareto plots and boundary crops.
 """
@@ -22,7 +24,7 @@ import importlib
 from pathlib import Path
 
 SUITES = ("tracer", "compositor", "refocus", "photos", "addon", "hardcases", "references",
-          "scaling", "blender", "official")
+          "scaling", "photosize", "blender", "official")
 
 
 def run_bench(out: Path, suite: str = "all", quick: bool = True, executor=None) -> dict:

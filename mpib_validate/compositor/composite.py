@@ -46,6 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mpib_validate.compositor import kernels as _k
+from mpib_validate.layers import mpi as _M
 from mpib_validate.layers.mpi import MPI, Layer
 
 
@@ -69,6 +70,9 @@ class CompositeSettings:
             continuous surface crosses groups; two surfaces closer than this are then
             side by side rather than one in front (an error within a band of that
             many pixels).
+        tiles: with ``crop`` and the numpy backend, blur each layer only on the output
+            tiles whose window holds its content, where that costs less
+            (:func:`_tile_plan`); the same result up to rounding.
     """
 
     kernel: str = "canonical"
@@ -77,6 +81,7 @@ class CompositeSettings:
     reduce_above: float | None = None
     backend: str = "numpy"
     slab_px: float | None = None
+    tiles: bool = True
 
 
 PLAIN = CompositeSettings(kernel="canonical", conv="direct", crop=False, reduce_above=None)
@@ -100,14 +105,9 @@ def _padded_region(layer: Layer, canvas: tuple[int, int], box: tuple[int, int, i
     by replication where the layer's box touches that edge (the official padding)."""
     y0, y1, x0, x1 = box
     hc, wc = canvas
-    out = np.zeros((y1 - y0 + 2 * R, x1 - x0 + 2 * R, layer.rgba.shape[2]), np.float32)
+    out = np.zeros((y1 - y0 + 2 * R, x1 - x0 + 2 * R, layer.shape[2]), np.float32)
     ly0, ly1, lx0, lx1 = layer.box
-    # where the layer's content sits in `out`
-    oy, ox = ly0 - (y0 - R), lx0 - (x0 - R)
-    sy0, sy1 = max(0, -oy), min(ly1 - ly0, out.shape[0] - oy)
-    sx0, sx1 = max(0, -ox), min(lx1 - lx0, out.shape[1] - ox)
-    if sy0 < sy1 and sx0 < sx1:
-        out[oy + sy0:oy + sy1, ox + sx0:ox + sx1] = layer.rgba[sy0:sy1, sx0:sx1]
+    layer.read(out, y0 - R, x0 - R)
     # replication past the canvas edge, where the content touches it
     top, left = -(y0 - R), -(x0 - R)  # rows/cols of `out` before the canvas starts
     bottom = (y1 + R) - hc
@@ -212,6 +212,106 @@ def _blur_layer(layer: Layer, rho: float, box, canvas, settings: CompositeSettin
     return _correlate(_padded_region(layer, canvas, box, _k.kernel_radius(k)), k, settings)
 
 
+#: Side (px) of the canvas tiles on which the compositor records where a group was
+#: written (the layers' storage tiles, :data:`mpib_validate.layers.mpi.TILE_PX`).
+_TILE = _M.TILE_PX
+
+
+def _window_cost(h: int, w: int, taps: int) -> float:
+    """Relative cost of correlating one padded window of ``h x w`` pixels: per pixel
+    the taps (direct) or the FFT's ``~2.8 log2 n`` (the cost model of
+    :func:`mpib_validate.compositor.kernels.fft_is_cheaper`), whichever is less."""
+    n = h * w
+    return n * min(taps, 2.5 * math.log2(max(n, 2)) * 9 / 8)
+
+
+#: Output tile sides (px, multiples of the storage tile) the compositor chooses from.
+_TILE_SIDES = (64, 128, 256, 512)
+#: Side (px) of the cells on which a layer's content is located for the tile plan (a
+#: divisor of the storage tile): the kept tiles are those within the kernel radius,
+#: rounded up to this, of content.
+_FINE = 16
+
+
+def _tile_plan(layer: Layer, R: int, taps: int, box, canvas):
+    """``(T, ty, tx)``: the output tile side and the tiles (canvas tile indices) of
+    ``box`` whose input window (the tile grown by ``R``) may hold content of the
+    layer, for the side that costs least (:func:`_window_cost` summed over the
+    tiles); ``None`` when one window over the whole box costs less."""
+    by0, by1, bx0, bx1 = box
+    best = _window_cost(by1 - by0 + 2 * R, bx1 - bx0 + 2 * R, taps), None
+    occ = layer.occupancy(canvas, _FINE)
+    e = -(-R // _FINE)  # fine cells a window reaches beyond its tile
+    if e:
+        from scipy import ndimage
+
+        occ = ndimage.binary_dilation(occ, np.ones((2 * e + 1, 2 * e + 1), bool))
+    for T in _TILE_SIDES:
+        f = T // _FINE
+        ny, nx = -(-occ.shape[0] // f), -(-occ.shape[1] // f)
+        grid = np.zeros((ny * f, nx * f), bool)
+        grid[:occ.shape[0], :occ.shape[1]] = occ
+        occT = grid.reshape(ny, f, nx, f).any(axis=(1, 3))
+        sub = occT[by0 // T:-(-by1 // T), bx0 // T:-(-bx1 // T)]
+        cost = int(sub.sum()) * _window_cost(T + 2 * R, T + 2 * R, taps)
+        if cost < best[0]:
+            ty, tx = np.nonzero(sub)
+            best = cost, (T, ty + by0 // T, tx + bx0 // T)
+    return best[1]
+
+
+def _clamp(blurred: np.ndarray) -> np.ndarray:
+    """Blurred alpha clipped to [0, 1], colour and extra channels to >= 0 (in place):
+    rounding cannot then leave the range of a blur of valid content."""
+    np.clip(blurred[..., 3], 0.0, 1.0, out=blurred[..., 3])
+    np.maximum(blurred[..., :3], 0.0, out=blurred[..., :3])
+    np.maximum(blurred[..., 4:], 0.0, out=blurred[..., 4:])
+    return blurred
+
+
+def _blur_parts(layer: Layer, rho: float, box, canvas, settings: CompositeSettings, cell=None):
+    """The blurred layer over ``box`` as ``(rect, blurred)`` parts, canvas rectangles
+    (y0, y1, x0, x1) inside ``box``; the layer's blur is zero elsewhere.
+
+    With ``crop`` and the numpy backend at full resolution, the box may be cut into
+    square output tiles (:func:`_tile_plan`: the side that costs least, or none); a tile
+    whose input window (the tile grown by the kernel radius) holds no content of the
+    layer is skipped, and the kept windows are blurred in batches
+    (:func:`mpib_validate.compositor.kernels.correlate_batch`). Each output pixel is the
+    same correlation of the same window as untiled, with the same FFT noise floor
+    (the layer's channel peaks): only rounding differs (an FFT of another size).
+    Otherwise the box is one part."""
+    reduced = settings.reduce_above is not None and abs(rho) > settings.reduce_above
+    if not settings.crop or settings.backend != "numpy" or reduced:
+        yield box, _clamp(_blur_layer(layer, rho, box, canvas, settings, cell))
+        return
+    k = _layer_kernel(rho, settings, cell)
+    R = _k.kernel_radius(k)
+    plan = None
+    if k.size > 1 and settings.tiles:
+        # the k x k sub-aperture passes ask again for the same layer, radius and box
+        key = ("tile plan", R, k.size, tuple(box), tuple(canvas))
+        if key not in layer._memo:
+            layer._memo[key] = _tile_plan(layer, R, k.size, box, canvas)
+        plan = layer._memo[key]
+    if plan is None:
+        yield box, _clamp(_correlate(_padded_region(layer, canvas, box, R), k, settings))
+        return
+    T, ty, tx = plan
+    peak = _k._channel_peaks(layer.tiles[1] if layer.tiles is not None else layer.rgba)
+    by0, by1, bx0, bx1 = box
+    per = max(1, _k.BATCH_BYTES // (8 * (T + 2 * R) ** 2 * layer.shape[2]))
+    for a in range(0, ty.size, per):
+        rects = [(y * T, y * T + T, x * T, x * T + T) for y, x in zip(ty[a:a + per],
+                                                                      tx[a:a + per])]
+        windows = np.stack([_padded_region(layer, canvas, r, R) for r in rects])
+        blurred = _clamp(_k.correlate_batch(windows, k, settings.conv, peak))
+        for (y0, y1, x0, x1), b in zip(rects, blurred):
+            c = (max(y0, by0), min(y1, by1), max(x0, bx0), min(x1, bx1))
+            if c[0] < c[1] and c[2] < c[3]:
+                yield c, b[c[0] - y0:c[1] - y0, c[2] - x0:c[3] - x0]
+
+
 def composite(mpi: MPI, blur_parameter: float, focus_disparity: float,
               settings: CompositeSettings = CompositeSettings(), cell=None,
               progress=None) -> np.ndarray:
@@ -246,7 +346,8 @@ def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
     acc = np.zeros((H, W, C), np.float32)  # premultiplied colour + normaliser (+ extras)
     cmax = np.zeros(C - 1, np.float32)
     frame = (m, m + H, m, m + W)
-    group_sum, group_box, group_id = None, None, None  # the additive slab being summed
+    ny, nx = -(-canvas[0] // _TILE), -(-canvas[1] // _TILE)
+    group_sum, group_tiles, group_id = None, None, None  # the additive slab being summed
     layers, slab_of = _merge_within_slabs(
         mpi.layers, _slabs(mpi.layers, (settings.slab_px or 0.0) / blur_parameter))
     for i, layer in enumerate(layers):  # far to near
@@ -267,35 +368,34 @@ def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
             box = (y0, y1, x0, x1)
         else:
             box = frame
-        blurred = _blur_layer(layer, rho, box, canvas, settings, cell)
-        np.clip(blurred[..., 3], 0.0, 1.0, out=blurred[..., 3])
-        np.maximum(blurred[..., :3], 0.0, out=blurred[..., :3])
-        np.maximum(blurred[..., 4:], 0.0, out=blurred[..., 4:])
         if mpi.colour_max is None:  # colour bound for the safe division
-            a = layer.rgba[..., 3:4]
-            colour = np.delete(layer.rgba, 3, axis=2)
+            rgba = layer.rgba
+            a = rgba[..., 3:4]
+            colour = np.delete(rgba, 3, axis=2)
             straight = np.divide(colour, a, out=np.zeros_like(colour), where=a > 0)
             cmax = np.maximum(cmax, straight.reshape(-1, C - 1).max(axis=0))
-        y0, y1, x0, x1 = box
-        if layer.group is None:
-            region = acc[y0 - m:y1 - m, x0 - m:x1 - m]
-            # acc <- acc (1 - a_blur) + [c a]_blur   (premultiplied colour, and the normaliser)
-            region *= 1.0 - blurred[..., 3:4]
-            region += blurred
-            continue
-        # an additive group: sum its blurred shares, then lay the sum over acc
-        if group_box is not None and slab_of[i] != group_id:
-            _over_group(acc, group_sum, group_box, m)
-            group_box = None
-        if group_sum is None:
-            group_sum = np.zeros_like(acc)
-        group_id = slab_of[i]
-        group_sum[y0 - m:y1 - m, x0 - m:x1 - m] += blurred
-        group_box = box if group_box is None else (
-            min(group_box[0], y0), max(group_box[1], y1), min(group_box[2], x0),
-            max(group_box[3], x1))
-    if group_box is not None:
-        _over_group(acc, group_sum, group_box, m)
+        if layer.group is not None:
+            if group_tiles is not None and slab_of[i] != group_id:
+                _over_tiles(acc, group_sum, group_tiles, m, frame)
+                group_tiles = None
+            if group_sum is None:
+                group_sum = np.zeros_like(acc)
+            if group_tiles is None:
+                group_tiles = np.zeros((ny, nx), bool)
+            group_id = slab_of[i]
+        for rect, blurred in _blur_parts(layer, rho, box, canvas, settings, cell):
+            y0, y1, x0, x1 = rect
+            if layer.group is None:
+                region = acc[y0 - m:y1 - m, x0 - m:x1 - m]
+                # acc <- acc (1 - a_blur) + [c a]_blur   (premultiplied colour, and the normaliser)
+                region *= 1.0 - blurred[..., 3:4]
+                region += blurred
+                continue
+            # an additive group: sum its blurred shares, then lay the sum over acc
+            group_sum[y0 - m:y1 - m, x0 - m:x1 - m] += blurred
+            group_tiles[y0 // _TILE:-(-y1 // _TILE), x0 // _TILE:-(-x1 // _TILE)] = True
+    if group_tiles is not None:
+        _over_tiles(acc, group_sum, group_tiles, m, frame)
     if progress is not None:
         progress(1.0)
     return acc, (cmax if mpi.colour_max is None else mpi.colour_max)
@@ -367,6 +467,29 @@ def _over_group(acc, group_sum, box, m):
     region *= 1.0 - np.minimum(g[..., 3:4], 1.0)
     region += g
     g[...] = 0.0
+
+
+def _over_tiles(acc, group_sum, tiles, m, frame):
+    """:func:`_over_group` on each row run of the marked canvas tiles (side
+    ``_TILE``) within the frame: where the group was written, and nowhere twice."""
+    for rect in _runs(tiles, _TILE, frame):
+        _over_group(acc, group_sum, rect, m)
+
+
+def _runs(tiles: np.ndarray, T: int, clip):
+    """Rectangles (y0, y1, x0, x1), canvas pixels clipped to ``clip``, of the runs of
+    consecutive True tiles of each row of the tile map ``tiles`` (side ``T``)."""
+    cy0, cy1, cx0, cx1 = clip
+    for ty in np.flatnonzero(tiles.any(axis=1)):
+        row = np.concatenate([[False], tiles[ty], [False]])
+        edges = np.flatnonzero(row[1:] != row[:-1])
+        y0, y1 = max(ty * T, cy0), min(ty * T + T, cy1)
+        if y0 >= y1:
+            continue
+        for a, b in zip(edges[::2], edges[1::2]):
+            x0, x1 = max(a * T, cx0), min(b * T, cx1)
+            if x0 < x1:
+                yield y0, y1, x0, x1
 
 
 def _normalise(acc: np.ndarray, cmax: np.ndarray) -> np.ndarray:

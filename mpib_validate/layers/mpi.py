@@ -22,9 +22,24 @@ import numpy as np
 from mpib_validate.cards.scene import Scene
 
 
-@dataclass
+#: Side (px) of the canvas-aligned tiles in which a sparse layer is stored (and on whose
+#: multiples the compositor skips empty parts of a layer): tile ``(ty, tx)`` covers canvas
+#: rows ``[ty T, ty T + T)`` and columns ``[tx T, tx T + T)``.
+TILE_PX = 64
+#: A layer is stored as tiles when its occupied tiles cover at most this fraction of its
+#: bounding box (a thin band across the frame, a level set of a smooth depth); otherwise
+#: as one dense box.
+TILED_FILL_MAX = 0.6
+
+
 class Layer:
     """One MPI plane: premultiplied RGBA over a box of the canvas.
+
+    Stored either dense (``rgba``, the whole box) or, for content spread thinly over a
+    large box, as the box's occupied canvas-aligned tiles of :data:`TILE_PX` px
+    (``tiles``: ``(keys (n, 2) tile row/column, data (n, T, T, C))``; every pixel
+    outside them is zero). ``rgba`` always reads the dense box (built on demand for a
+    tiled layer); the compositor reads tiles through :meth:`read` and :meth:`occupancy`.
 
     Attributes:
         disparity: the plane's disparity (1/scene-unit).
@@ -32,24 +47,150 @@ class Layer:
             alpha, then any extra channels premultiplied like the colour (``C = 4``
             unless the builder was given extras).
         y0, x0: top-left of the box in canvas pixels.
+        group: ``None``: the layer occludes every farther one (Eq. 1). An integer:
+            additive groups (slabs), far to near. Content exactly on plane ``k`` forms
+            one group, the two additive shares of content strictly inside the interval
+            ``(d_k, d_k+1)`` another (see :func:`split_between_planes`), and consecutive
+            groups within a disparity span may be merged into one slab
+            (:func:`layers_from_sheets`). The layers of one group are blurred and
+            *summed*; groups are composited with "over".
     """
 
-    disparity: float
-    rgba: np.ndarray
-    y0: int
-    x0: int
-    #: ``None``: the layer occludes every farther one (Eq. 1). An integer: additive
-    #: groups (slabs), far to near. Content exactly on plane ``k`` forms one group, the
-    #: two additive shares of content strictly inside the interval ``(d_k, d_k+1)``
-    #: another (see :func:`split_between_planes`), and consecutive groups within a
-    #: disparity span may be merged into one slab (:func:`layers_from_sheets`). The
-    #: layers of one group are blurred and *summed*; groups are composited with "over".
-    group: int | None = None
+    __slots__ = ("disparity", "_rgba", "y0", "x0", "group", "tiles", "_shape", "_memo")
+
+    def __init__(self, disparity: float, rgba: np.ndarray | None, y0: int, x0: int,
+                 group: int | None = None, tiles=None, shape=None):
+        self.disparity = disparity
+        self._rgba = rgba
+        self.y0, self.x0 = y0, x0
+        self.group = group
+        self.tiles = tiles
+        self._memo = {}  # derived, read-only: tile lookup, occupancy maps
+        if rgba is not None:
+            self._shape = tuple(rgba.shape)
+        elif tiles is None or shape is None:
+            raise ValueError("a layer needs its dense rgba, or tiles and the box shape")
+        else:
+            self._shape = tuple(shape)
+
+    def __repr__(self) -> str:
+        kind = "dense" if self.tiles is None else f"{len(self.tiles[0])} tiles"
+        return (f"Layer(disparity={self.disparity!r}, box={self.box}, group={self.group!r}, "
+                f"{kind})")
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """``(h, w, C)`` of the box."""
+        return self._shape
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the layer's pixels."""
+        return int(self._rgba.nbytes if self._rgba is not None else self.tiles[1].nbytes)
+
+    @property
+    def rgba(self) -> np.ndarray:
+        if self._rgba is not None:
+            return self._rgba
+        out = np.zeros(self._shape, np.float32)
+        self.read(out, self.y0, self.x0)
+        return out
+
+    @rgba.setter
+    def rgba(self, value: np.ndarray) -> None:
+        self._rgba, self.tiles, self._shape = value, None, tuple(value.shape)
+        self._memo = {}
 
     @property
     def box(self) -> tuple[int, int, int, int]:
-        h, w = self.rgba.shape[:2]
+        h, w = self._shape[:2]
         return self.y0, self.y0 + h, self.x0, self.x0 + w
+
+    def read(self, out: np.ndarray, y0: int, x0: int) -> None:
+        """Write the layer's content into ``out``, whose pixel ``[0, 0]`` is canvas pixel
+        ``(y0, x0)``, where they overlap (``out`` is expected zero elsewhere)."""
+        H, W = out.shape[:2]
+        if self.tiles is None:
+            ly0, ly1, lx0, lx1 = self.box
+            a0, a1 = max(ly0, y0), min(ly1, y0 + H)
+            b0, b1 = max(lx0, x0), min(lx1, x0 + W)
+            if a0 < a1 and b0 < b1:
+                out[a0 - y0:a1 - y0, b0 - x0:b1 - x0] = self._rgba[a0 - ly0:a1 - ly0,
+                                                                  b0 - lx0:b1 - lx0]
+            return
+        keys, data = self.tiles
+        T = data.shape[1]
+        index = self._memo.get("index")
+        if index is None:
+            index = self._memo["index"] = {(int(a), int(b)): i for i, (a, b) in enumerate(keys)}
+        for ky in range(max(y0, 0) // T, -(-(y0 + H) // T)):
+            for kx in range(max(x0, 0) // T, -(-(x0 + W) // T)):
+                i = index.get((ky, kx))
+                if i is None:
+                    continue
+                ty, tx = ky * T, kx * T
+                a0, a1 = max(ty, y0), min(ty + T, y0 + H)
+                b0, b1 = max(tx, x0), min(tx + T, x0 + W)
+                out[a0 - y0:a1 - y0, b0 - x0:b1 - x0] = data[i, a0 - ty:a1 - ty,
+                                                             b0 - tx:b1 - tx]
+
+    def occupancy(self, canvas: tuple[int, int], T: int = TILE_PX) -> np.ndarray:
+        """Boolean map over the canvas-aligned tiles of side ``T`` (a multiple or a
+        divisor of :data:`TILE_PX`, or any side for a dense layer): True where the tile
+        holds content of this layer (for a tiled layer and ``T`` a multiple of the
+        storage tile: where a stored tile lies). Read-only (kept for reuse)."""
+        key = ("occupancy", tuple(canvas), T)
+        if key not in self._memo:
+            occ = self._occupancy(canvas, T)
+            occ.setflags(write=False)
+            self._memo[key] = occ
+        return self._memo[key]
+
+    def _occupancy(self, canvas, T):
+        ny, nx = -(-canvas[0] // T), -(-canvas[1] // T)
+        occ = np.zeros((ny, nx), bool)
+        if self.tiles is not None and T % self.tiles[1].shape[1] == 0:
+            f = T // self.tiles[1].shape[1]
+            keys = self.tiles[0]
+            occ[keys[:, 0] // f, keys[:, 1] // f] = True
+            return occ
+        if self.tiles is not None and self.tiles[1].shape[1] % T == 0:
+            keys, data = self.tiles
+            S = data.shape[1]
+            f = S // T
+            sub = (data != 0).any(axis=3).reshape(len(keys), f, T, f, T).any(axis=(2, 4))
+            big = np.zeros((-(-canvas[0] // S) * f, -(-canvas[1] // S) * f), bool)
+            for (ty, tx), blk in zip(keys, sub):
+                big[ty * f:ty * f + f, tx * f:tx * f + f] = blk
+            return big[:ny, :nx]
+        y0, y1, x0, x1 = self.box
+        ty0, tx0 = y0 // T, x0 // T
+        ty1, tx1 = -(-y1 // T), -(-x1 // T)
+        a = np.zeros(((ty1 - ty0) * T, (tx1 - tx0) * T), bool)
+        self_nz = (self.rgba != 0).any(axis=2)
+        a[y0 - ty0 * T:y1 - ty0 * T, x0 - tx0 * T:x1 - tx0 * T] = self_nz
+        occ[ty0:ty1, tx0:tx1] = a.reshape(ty1 - ty0, T, tx1 - tx0, T).any(axis=(1, 3))
+        return occ
+
+
+def tile_layer(canvas_layer: np.ndarray, box, touched, T: int = TILE_PX):
+    """The occupied ``T``-tiles of a canvas-sized layer ``(H_c, W_c, C)`` within ``box``
+    (r0, r1, c0, c1), given the flat canvas indices of the pixels it holds: ``(keys,
+    data)`` for :class:`Layer` (tile parts outside the canvas are zero), or None when
+    they cover more than :data:`TILED_FILL_MAX` of the box (dense is then no larger)."""
+    hc, wc, C = canvas_layer.shape
+    r, c = np.divmod(np.asarray(touched, np.int64), wc)
+    ntx = -(-wc // T)
+    ids = np.unique((r // T) * ntx + c // T)
+    r0, r1, c0, c1 = box
+    if ids.size * T * T > TILED_FILL_MAX * (r1 - r0) * (c1 - c0):
+        return None
+    keys = np.stack(np.divmod(ids, ntx), axis=1)
+    data = np.zeros((ids.size, T, T, C), np.float32)
+    for i, (ty, tx) in enumerate(keys):
+        blk = canvas_layer[ty * T:ty * T + T, tx * T:tx * T + T]
+        data[i, :blk.shape[0], :blk.shape[1]] = blk
+    return keys, data
 
 
 @dataclass
@@ -79,7 +220,7 @@ class MPI:
     def channels(self) -> int:
         """Channels per layer: premultiplied RGB, alpha, then any extra premultiplied
         channels (e.g. the film alpha of a transparent render); 4 when empty."""
-        return self.layers[0].rgba.shape[2] if self.layers else 4
+        return self.layers[0].shape[2] if self.layers else 4
 
     @property
     def canvas_shape(self) -> tuple[int, int]:
@@ -120,11 +261,14 @@ class MPI:
         return mpi
 
     def add(self, disparity: float, rgba: np.ndarray, y0: int, x0: int,
-            box: tuple[int, int, int, int] | None = None, group: int | None = None) -> None:
+            box: tuple[int, int, int, int] | None = None, group: int | None = None,
+            touched=None) -> None:
         """Add premultiplied content at canvas position ``(y0, x0)``, cropped to where
         alpha or colour is non-zero (or to ``box`` = (r0, r1, c0, c1) within ``rgba``
         when the caller knows it); nothing is stored for empty content. ``group``: see
-        :attr:`Layer.group`."""
+        :attr:`Layer.group`. ``touched``: for canvas-sized ``rgba`` at ``(0, 0)``, the
+        flat canvas indices of every pixel it holds; the layer is then stored as tiles
+        where that is smaller (:func:`tile_layer`)."""
         if not np.isfinite(disparity) or disparity < 0:
             raise ValueError(f"layer disparity must be finite and >= 0, got {disparity}")
         if box is None:
@@ -136,8 +280,16 @@ class MPI:
             r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
         else:
             r0, r1, c0, c1 = box
-        crop = np.array(rgba[r0:r1, c0:c1], dtype=np.float32, order="C", copy=True)
-        self.layers.append(Layer(float(disparity), crop, y0 + int(r0), x0 + int(c0), group))
+        tiles = None
+        if touched is not None and y0 == 0 and x0 == 0 and rgba.dtype == np.float32:
+            tiles = tile_layer(rgba, (r0, r1, c0, c1), touched)
+        if tiles is not None:
+            layer = Layer(float(disparity), None, int(r0), int(c0), group, tiles,
+                          (int(r1 - r0), int(c1 - c0), rgba.shape[2]))
+        else:
+            crop = np.array(rgba[r0:r1, c0:c1], dtype=np.float32, order="C", copy=True)
+            layer = Layer(float(disparity), crop, y0 + int(r0), x0 + int(c0), group)
+        self.layers.append(layer)
         self.layers.sort(key=lambda l: (-1 if l.group is None else l.group, l.disparity))
 
 
@@ -467,7 +619,8 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
             if touched:
                 group = slab_id
                 mpi.add(float(d_p), layer.reshape(hc, wc, K + 1), 0, 0,
-                        box=tuple(int(v) for v in box), group=group)
+                        box=tuple(int(v) for v in box), group=group,
+                        touched=np.concatenate(touched))
                 for px in touched:
                     layer[px] = 0.0  # clear only what this plane wrote
     return mpi
