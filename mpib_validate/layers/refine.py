@@ -130,7 +130,13 @@ def refine_disparity(colour: np.ndarray, disparity: np.ndarray, blur_parameter: 
     band = blur_parameter * (hi - lo) > jump_px
     if not band.any():
         return D.copy()
-    m = D > 0.5 * (hi + lo)
+    # each pixel's predicted side: above or below the mid-level of a window that reaches
+    # flip_px (at most radius) beyond the band, so that a flat region next to the band (hi == lo there in
+    # the band's own window) keeps its side instead of making a false edge inside an
+    # object, where the colour of a texture would then flip pixels
+    wide = 2 * (radius + min(flip_px, radius)) + 1
+    m = D > 0.5 * (ndimage.maximum_filter(D, wide, mode="nearest")
+                   + ndimage.minimum_filter(D, wide, mode="nearest"))
     # the colour may move the side only within flip_px of the predicted edge: deeper
     # inside, a texture whose colours straddle the other side's (red and cyan stripes
     # before a grey wall) would flip under the guided filter's linear colour model
