@@ -97,12 +97,14 @@ def test_slices_sum_back_to_the_image_when_nothing_blurs():
 
 def test_soft_edges_give_back_the_pixel_when_nothing_blurs():
     """Edge pixels next to a nearer square are shared between the far slice (the fill's
-    colour F) and the near one (I - F/2 at alpha 1/2): with a pinhole their composite is
-    the pixel, wherever I >= F/2 (elsewhere the near part is clamped at 0)."""
+    colour F) and the near one (I - (1 - b) F at alpha b): with a pinhole their composite is
+    the pixel, wherever I >= (1 - b) F (elsewhere the near part is clamped at 0)."""
     rng = np.random.default_rng(4)
     H, W = 24, 32
     image = np.ones((H, W, 4), np.float32)
-    image[..., :3] = rng.uniform(0.3, 0.9, (H, W, 3))
+    # colours within 10 % of each other, so that I >= (1 - b) F holds for most edge
+    # pixels at the default b (EDGE_ALPHA = 0.1)
+    image[..., :3] = rng.uniform(0.5, 0.55, (H, W, 3))
     depth = np.full((H, W), 6.0, np.float32)
     depth[6:18, 8:20] = 1.5
     spec = ng.make_spec((1 / 6, 1 / 1.5), 20.0, fill="inpaint", blur="bokeh")
