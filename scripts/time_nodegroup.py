@@ -34,7 +34,7 @@ def main(argv=None) -> int:
     ap.add_argument("--max-radius", type=float, default=24.0)
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--blur", default="convolve", choices=("convolve", "bokeh"))
-    ap.add_argument("--max-slices", type=int, default=8)
+    ap.add_argument("--max-slices", type=int, default=None, help="default: the operator's")
     ap.add_argument("--slab-px", type=float, default=None)
     ap.add_argument("--out", default=None, help="write the result as JSON here")
     a = ap.parse_args(argv)
@@ -63,7 +63,7 @@ def main(argv=None) -> int:
     A = c["lens_mm"] * 1e-3 / (2.0 * fstop) * f_px
     cam = {"lens_mm": c["lens_mm"], "sensor_width_mm": c["sensor_width_mm"], "fstop": fstop,
            "focus_distance": c["focus_distance"]}
-    spec = ng.spec_from_render(depth, A, blur=a.blur, max_slices=a.max_slices, slab_px=ng.SLAB_PX if a.slab_px is None else a.slab_px,
+    spec = ng.spec_from_render(depth, A, blur=a.blur, max_slices=a.max_slices or ng.DEFAULT_MAX_SLICES, slab_px=ng.SLAB_PX if a.slab_px is None else a.slab_px,
                                focus_disparity=c["focus_disparity"])
     graph = ng.describe(spec)
     image = np.concatenate([colour, np.ones((H, W, 1), np.float32)], -1)
