@@ -10,7 +10,8 @@ node (loading the EXR and writing the output: the baseline), the Defocus node
 from the depth, Inpaint fill, Convolve or Bokeh Blur). A method's time is its render op
 minus the baseline; the report gives the median of the rounds and the ratio.
 
-    python scripts/time_nodegroup.py --scene out/bench-blender/blender-cache/spheres-s0-far-320x240-64spp
+    python scripts/time_nodegroup.py --max-radius 8 --rounds 2 \\
+        --scene out/bench-blender/blender-cache/spheres-s0-far-320x240-64spp
 """
 
 from __future__ import annotations
@@ -38,6 +39,13 @@ def main(argv=None) -> int:
     ap.add_argument("--slab-px", type=float, default=None)
     ap.add_argument("--out", default=None, help="write the result as JSON here")
     a = ap.parse_args(argv)
+    if not (Path(a.scene) / "passes.exr").is_file():
+        print(f"time_nodegroup: --scene {a.scene}: no passes.exr there (a Blender suite "
+              f"cache folder is needed)", file=sys.stderr)
+        return 2
+    if a.max_radius <= 0 or a.rounds < 1:
+        print("time_nodegroup: --max-radius must be > 0 and --rounds >= 1", file=sys.stderr)
+        return 2
 
     from mpib_validate.blender import nodegroup as ng
     from mpib_validate.blender.scenes import lens, load_scene
@@ -63,7 +71,9 @@ def main(argv=None) -> int:
     A = c["lens_mm"] * 1e-3 / (2.0 * fstop) * f_px
     cam = {"lens_mm": c["lens_mm"], "sensor_width_mm": c["sensor_width_mm"], "fstop": fstop,
            "focus_distance": c["focus_distance"]}
-    spec = ng.spec_from_render(depth, A, blur=a.blur, max_slices=a.max_slices or ng.DEFAULT_MAX_SLICES, slab_px=ng.SLAB_PX if a.slab_px is None else a.slab_px,
+    spec = ng.spec_from_render(depth, A, blur=a.blur,
+                               max_slices=a.max_slices or ng.DEFAULT_MAX_SLICES,
+                               slab_px=ng.SLAB_PX if a.slab_px is None else a.slab_px,
                                focus_disparity=c["focus_disparity"])
     graph = ng.describe(spec)
     image = np.concatenate([colour, np.ones((H, W, 1), np.float32)], -1)
