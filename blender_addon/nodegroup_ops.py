@@ -67,7 +67,7 @@ class MPIB_OT_add_refocus_node(bpy.types.Operator):
     bl_label = "Add Refocus Node"
     bl_options = {"REGISTER", "UNDO"}
 
-    max_slices: IntProperty(name="Slices", default=8, min=1, max=32,
+    max_slices: IntProperty(name="Slices", default=5, min=1, max=32,
                             description="Largest number of depth slices (more: slower, finer)")
     tolerance_px: FloatProperty(name="Tolerance", default=0.5, min=0.05, max=16.0,
                                 description="Blur-radius error the slice spacing allows (px); "
@@ -120,7 +120,8 @@ class MPIB_OT_add_refocus_node(bpy.types.Operator):
         r_max = max(c.blur_parameter * max(abs(x - c.focus_disparity) for x in d) for c in cams)
         blur = ("bokeh" if legacy else "convolve") if self.blur == "AUTO" else self.blur.lower()
         spec = ng.make_spec(d, A, fill=self.fill.lower(), blur=blur,
-                            max_radius_px=max(r_max, now.blur_parameter * float(d[-1])))
+                            max_radius_px=max(r_max, now.blur_parameter * float(d[-1])),
+                            focus_disparity=[c.focus_disparity for c in cams])
         graph = ng.describe(spec)
         tree = ng.compositor_tree(scene, create=True)
         node = tree.nodes.get(ng.GROUP_NAME)
@@ -130,8 +131,11 @@ class MPIB_OT_add_refocus_node(bpy.types.Operator):
         scene.render.use_compositing = True
         if self.drivers:
             ng.add_camera_drivers(node, scene)
+        n_conv = sum(op.kind == "convolve" for op in graph.ops)
+        n_bokeh = sum(op.kind == "bokeh_blur" for op in graph.ops)
         msg = (f"MPIB Refocus node: {len(d)} slices from {source}, tolerance {tol:.2g} px, "
-               f"fill {self.fill.lower()}, {'Convolve' if blur == 'convolve' else 'Bokeh Blur'}")
+               f"fill {self.fill.lower()}, {n_conv + n_bokeh} blurs ({n_conv} Convolve, "
+               f"{n_bokeh} Bokeh Blur)")
         if legacy and blur == "bokeh":
             side = max(now.width, now.height)
             if r_max > 0.1 * side:

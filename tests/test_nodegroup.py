@@ -97,12 +97,14 @@ def test_slices_sum_back_to_the_image_when_nothing_blurs():
 
 def test_soft_edges_give_back_the_pixel_when_nothing_blurs():
     """Edge pixels next to a nearer square are shared between the far slice (the fill's
-    colour F) and the near one (I - F/2 at alpha 1/2): with a pinhole their composite is
-    the pixel, wherever I >= F/2 (elsewhere the near part is clamped at 0)."""
+    colour F) and the near one (I - (1 - b) F at alpha b): with a pinhole their composite is
+    the pixel, wherever I >= (1 - b) F (elsewhere the near part is clamped at 0)."""
     rng = np.random.default_rng(4)
     H, W = 24, 32
     image = np.ones((H, W, 4), np.float32)
-    image[..., :3] = rng.uniform(0.3, 0.9, (H, W, 3))
+    # colours within 10 % of each other, so that I >= (1 - b) F holds for most edge
+    # pixels at the default b (EDGE_ALPHA = 0.1)
+    image[..., :3] = rng.uniform(0.5, 0.55, (H, W, 3))
     depth = np.full((H, W), 6.0, np.float32)
     depth[6:18, 8:20] = 1.5
     spec = ng.make_spec((1 / 6, 1 / 1.5), 20.0, fill="inpaint", blur="bokeh")
@@ -111,15 +113,93 @@ def test_soft_edges_give_back_the_pixel_when_nothing_blurs():
     nodes = res["nodes"]
     ring = nodes["edge.ring_filled"] > 0
     assert ring.sum() == 2 * (12 + 12) + 4  # the far-side ring around the square
-    ok = np.all(image[..., :3] >= (1 - ng.EDGE_ALPHA) * nodes["s0.inpaint"][..., :3], -1)
+    ok = np.all(image[..., :3] >= (1 - ng.EDGE_ALPHA) * nodes["slab0.inpaint"][..., :3], -1)
     assert (ring & ok).sum() > 0.5 * ring.sum()
     assert np.abs(res["Image"][..., :3] - image[..., :3])[ok].max() < 1e-5
 
 
-def test_slice_layers_are_the_mpi_split():
-    """Each slice's alpha is what mpib_validate.layers.mpi.split_between_planes gives the pixel's
-    (dilated) disparity: the near plane ``u alpha``, the far one
-    ``alpha (1 - u) / (1 - u alpha)``."""
+def _emitter_excess(image, depth, spec, values, emitter, reach):
+    """Output energy (sum of RGB over the frame) with the emitter pixels minus the same
+    scene with those pixels at the wall's colour, and the emitter's own excess energy;
+    also the smallest normaliser acc_a within ``reach`` px of the emitter (where the
+    difference can be: away from the borders, where zero padding lowers acc_a)."""
+    plain = image.copy()
+    plain[emitter] = image[0, 0]  # the wall
+    outs = [ng.evaluate(ng.describe(spec), im, depth, values) for im in (image, plain)]
+    got = float(outs[0]["Image"][..., :3].sum() - outs[1]["Image"][..., :3].sum())
+    own = float(image[..., :3].sum() - plain[..., :3].sum())
+    ys, xs = np.nonzero(emitter)
+    win = (slice(max(0, ys.min() - reach), ys.max() + reach + 1),
+           slice(max(0, xs.min() - reach), xs.max() + reach + 1))
+    diff = np.abs(outs[0]["Image"][..., :3] - outs[1]["Image"][..., :3]).sum(-1)
+    assert diff.sum() - diff[win].sum() < 1e-4 * diff.sum()  # nothing beyond the window
+    return got, own, float(min(o["Alpha"][win].min() for o in outs))
+
+
+def test_an_hdr_emitter_on_an_occluding_edge_is_not_smeared_by_the_fill():
+    """A 2x2 emitter (radiance 20) on an in-focus wall, touching the edge of a blurred
+    bar in front: the hidden-background fill behind the bar must not copy the emitter
+    (Inpaint repeats the nearest source pixel D px into the hidden region, and the bar's
+    blurred edge lets the fill show through). Energy can then only be lost (occluded by
+    the bar's blur), never made: the blur kernels are normalised and the normaliser acc_a
+    is 1 here (checked), so the output's excess energy is at most the emitter's,
+    to float32 rounding of sums over the frame (1e-3 relative). Before the HDR guard the
+    fill's copies made it about twice the emitter's."""
+    H, W = 80, 96
+    image = np.ones((H, W, 4), np.float32)
+    image[..., :3] = 0.3
+    depth = np.full((H, W), 5.0, np.float32)
+    depth[26:, :] = 1.25  # the bar, nearer (1/1.25 = 0.8 vs the wall's 0.2)
+    image[26:, :, :3] = 0.5
+    emitter = np.zeros((H, W), bool)
+    emitter[24:26, 47:49] = True
+    image[emitter, :3] = 20.0
+    A = 20.0  # the bar's radius 12 px; the fill reaches 13 px behind it
+    spec = ng.spec_from_render(depth, A, blur="convolve")
+    assert spec.disparities == pytest.approx((0.2, 0.8)) and spec.fill_px[0] > 0
+    values = {"Focus Distance": 5.0, "F-Stop": 1e-3 * 50 / (2 * A) * 50 / 36 * W,
+              "Focal Length": 50.0, "Sensor Width": 36.0, "Resolution X": W,
+              "Resolution Y": H}
+    got, own, norm = _emitter_excess(image, depth, spec, values, emitter, 13 + 12 + 2)
+    assert norm > 1 - 1e-4
+    assert 0.3 * own < got <= own * (1 + 1e-3), (got, own)
+
+
+def test_an_emitter_between_two_slices_keeps_its_energy():
+    """An emitter (radiance 20, 2x2 px) halfway between two slices, before an in-focus
+    wall: the additive split gives it to both slices with weights 1/2 and 1/2, so the
+    blurred output holds its energy once, whether the two slices are one slab or the
+    interval is a slab alone (an "over" split, the graph before, counted it about 1.5
+    times: the far slice's opaque backing is hardly occluded by the blurred near share).
+    The wall it hides is subtracted through the plain scene (the same pixels at the
+    wall's colour); the blur kernels are normalised and acc_a is 1 (checked), so the
+    energy is kept to float32 rounding of the frame sums (1e-3 relative); bound 1 %."""
+    H, W = 48, 64
+    image = np.ones((H, W, 4), np.float32)
+    image[..., :3] = 0.3
+    depth = np.full((H, W), 5.0, np.float32)
+    emitter = np.zeros((H, W), bool)
+    emitter[23:25, 31:33] = True  # 16 px from the borders, beyond its 7 px blur
+    depth[emitter] = 2.0  # d = 0.5, halfway between the slices 0.45 and 0.55
+    image[emitter, :3] = 20.0
+    A = 20.0  # radii: 5 and 7 px at focus 5 m; the two slices 2 px apart
+    values = {"Focus Distance": 5.0, "F-Stop": 1e-3 * 50 / (2 * A) * 50 / 36 * W,
+              "Focal Length": 50.0, "Sensor Width": 36.0, "Resolution X": W,
+              "Resolution Y": H}
+    for slab_px in (ng.SLAB_PX, 0.0):
+        spec = ng.make_spec((0.2, 0.45, 0.55), A, blur="convolve", slab_px=slab_px)
+        got, own, norm = _emitter_excess(image, depth, spec, values, emitter, 8)
+        assert norm > 1 - 1e-4
+        assert got / own == pytest.approx(1.0, abs=0.01), slab_px
+
+
+@pytest.mark.parametrize("slab_px", [0.0, 5.0, 100.0])
+def test_slice_layers_are_the_mpi_split(slab_px):
+    """Each slice's alpha, summed over its layers (one per slab it borders), is the
+    additive split mpib_validate.layers.mpi.split_between_planes gives the pixel's
+    (dilated) disparity: the near plane ``u alpha``, the far one ``(1 - u) alpha``; each
+    interval's two shares sit in the same slab. Slabs: every interval alone (0 px), two
+    slabs (5 px: the radius spans of the intervals are 1.75, 2.5 and 4.5 px), one."""
     rng = np.random.default_rng(1)
     H, W = 16, 20
     alpha = rng.uniform(0.3, 1.0, (H, W)).astype(np.float32)
@@ -127,13 +207,24 @@ def test_slice_layers_are_the_mpi_split():
                             alpha[..., None]], -1)
     depth = rng.uniform(1.0, 8.0, (H, W)).astype(np.float32)
     planes = (0.125, 0.3, 0.55, 1.0)
-    spec = ng.make_spec(planes, 10.0, fill="off", blur="bokeh")
+    spec = ng.make_spec(planes, 10.0, fill="off", blur="bokeh", slab_px=slab_px)
+    assert len(set(spec.slabs)) == {0.0: 4, 5.0: 2, 100.0: 1}[slab_px]
     nodes = ng.evaluate(ng.describe(spec), image, depth, {}, keep=True)["nodes"]
     d = nodes["disparity_dilated"]
-    idx, a_lo, a_hi = split_between_planes(d, alpha, np.array(planes))
-    for i in range(len(planes)):
+    idx, a_lo, a_hi = split_between_planes(d, alpha, np.array(planes), additive=True)
+    n = len(planes)
+    # the slab entry of each pixel: its interval, or n - 1 at or nearer than the last slice
+    entry = np.where(d >= planes[-1], n - 1, idx)
+    for i in range(n):
+        slabs = {spec.slabs[k] for k in (i - 1, i) if 0 <= k < n}
+        got = sum(nodes[f"s{i}.layer{s}"][..., 3] for s in slabs if f"s{i}.layer{s}" in nodes)
         want = np.where(idx == i, a_lo, 0) + np.where(idx + 1 == i, a_hi, 0)
-        assert np.abs(nodes[f"s{i}.layer"][..., 3] - want).max() < 1e-5, i
+        assert np.abs(got - want).max() < 1e-5, i
+        for s in slabs:  # each layer holds the shares of its slab's entries only
+            mine = np.array(spec.slabs)[entry] == s
+            part = np.where((idx == i) & mine, a_lo, 0) + np.where((idx + 1 == i) & mine, a_hi, 0)
+            layer = nodes.get(f"s{i}.layer{s}")
+            assert np.abs((0 if layer is None else layer[..., 3]) - part).max() < 1e-5, (i, s)
 
 
 def test_slice_radius_is_the_thin_lens_radius():

@@ -148,13 +148,14 @@ def method_images(sc, exact_samples: int = 1024, layered=None) -> dict:
 def node_group(passes, spec, A: float):
     """The MPIB Refocus compositor node group (:mod:`mpib_validate.blender.nodegroup`) as the
     extension's operator makes it on 5.x (slices from this render's depth, Inpaint fill,
-    Convolve blur), rendered by Blender's compositor on the same passes; its own time
+    Convolve blur, Bokeh Blur for slices of small radius at this focus), rendered by Blender's compositor on the same passes; its own time
     (the render op of the compositing tree)."""
     from mpib_validate.blender.scenes import lens
     from mpib_validate.blender.nodegroup import describe, run_on_passes, spec_from_render
 
     c = lens(spec)
-    graph = describe(spec_from_render(passes.depth, A, blur="convolve"))
+    graph = describe(spec_from_render(passes.depth, A, blur="convolve",
+                                      focus_disparity=1.0 / c["focus_distance"]))
     image = np.concatenate([passes.colour, np.ones(passes.depth.shape + (1,), np.float32)],
                            axis=-1)
     values = {"Focus Distance": c["focus_distance"], "F-Stop": c["fstop"],
