@@ -349,4 +349,13 @@ out["after_disable"] = {
     "kept_passes": [p for p in os.listdir(tempfile.gettempdir())
                     if p.startswith(f"mpib_last_render_{os.getpid()}_")],
 }
-print("RESULT " + json.dumps(out))
+print("RESULT " + json.dumps(out), flush=True)
+if bpy.app.version < (5, 0):
+    # bpy 4.2 as a Python module segfaults in its own teardown, after everything above has
+    # run, once an add-on has registered a property with an update callback (found by
+    # bisecting: the extension without its two update callbacks exits 0; bpy 5.0.1 and
+    # 5.3 exit 0 with them; 4.5 not tried). Not seen in Blender itself, which this
+    # machine cannot run. Skip the module's teardown: the result above is what the test
+    # reads.
+    sys.stdout.flush()
+    os._exit(0)
