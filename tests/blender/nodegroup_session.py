@@ -224,4 +224,12 @@ elif command == "reopen":
     out["path"] = render_to(sc, args["out"])
 else:
     raise SystemExit(f"unknown command {command}")
-print("RESULT " + json.dumps(out))
+print("RESULT " + json.dumps(out), flush=True)
+if bpy.app.version < (5, 0):
+    # bpy 4.2 as a Python module segfaults in its own teardown after this session has
+    # rendered the node group (every result above is written by then; the session-start
+    # graph exited 0, 5.0.1 exits 0 with this one). Not checked in Blender itself, which
+    # this machine cannot run. Skip the module's teardown: the result above is what the
+    # test reads.
+    sys.stdout.flush()
+    os._exit(0)
