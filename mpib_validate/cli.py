@@ -365,7 +365,7 @@ def _plan_and_refocus(args, passes, A: float, d_f: float, D, background=None,
             bar.update(max(0, int(round(100 * fraction)) - bar.n))
 
     try:
-        if getattr(args, "mpi_cache", None) is None:
+        if args.mpi_cache is None:
             result = refocus(passes, A, d_f, args.preset, args.far_limit,
                              background=background, progress=progress, refine=refine)
         else:
@@ -537,13 +537,9 @@ def _refocus_photo(args) -> int:
     if args.exr:
         written += write_result(args.exr, result, preview=False)
     i = result.info
-    print(f"refocused {W}x{H} ({args.preset}): {i['planes']} planes, largest blur radius "
-          f"{i['largest_radius_px']:.1f} px, fill {100 * i['fill_fraction']:.1f} % of pixels, "
-          f"{'A = K' if args.K is not None else 'A'} = {A:.4g} px, d_f = {d_f:.5g}, "
-          f"{photo.encoding.describe()}, disparity refinement {refine}, {i['seconds']:.2f} s")
-    for p in written:
-        print(f"wrote {p}")
-    return 0
+    return _report(f"refocused {W}x{H} ({args.preset})", i, written,
+                   f"{'A = K' if args.K is not None else 'A'} = {A:.4g} px, d_f = {d_f:.5g}, "
+                   f"{photo.encoding.describe()}, disparity refinement {refine}")
 
 
 def cmd_refocus(args) -> int:
@@ -586,10 +582,17 @@ def cmd_refocus(args) -> int:
     written = write_result(args.output, result, preview=not args.no_preview)
     i = result.info
     layered = f", {i['groups']} depth groups" if i["groups"] > 1 else ""
-    print(f"refocused {W}x{H} ({args.preset}{layered}): {i['planes']} planes, largest blur radius "
-          f"{i['largest_radius_px']:.1f} px, fill {100 * i['fill_fraction']:.1f} % of pixels, "
-          f"edge pixels {100 * i['edge_fraction']:.1f} %, A = {A:.3f} px, d_f = {d_f:.5g}, "
-          f"{i['seconds']:.2f} s")
+    return _report(f"refocused {W}x{H} ({args.preset}{layered})", i, written,
+                   f"edge pixels {100 * i['edge_fraction']:.1f} %, A = {A:.3f} px, "
+                   f"d_f = {d_f:.5g}")
+
+
+def _report(head: str, info: dict, written, details: str) -> int:
+    """The one summary line of ``mpib refocus`` (planes, largest blur, fill, then the
+    path's own ``details`` and the time) and the files written; exit status 0."""
+    print(f"{head}: {info['planes']} planes, largest blur radius "
+          f"{info['largest_radius_px']:.1f} px, fill {100 * info['fill_fraction']:.1f} % of "
+          f"pixels, {details}, {info['seconds']:.2f} s")
     for p in written:
         print(f"wrote {p}")
     return 0

@@ -365,10 +365,11 @@ def sheets_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
     # (unmixing those too cost 0.2 dB PSNR_ob on the card scenes).
     near_corner = _fill.nearer_diagonal(D, thr)
     corner = (~band & np.isfinite(near_corner)) if unmix else np.zeros(D.shape, bool)
+    # which side of its nearest edge each pixel is on (near: in front of the far field)
+    near_side = D > np.where(np.isnan(far_field), -np.inf, far_field) + 0.5 * thr
     if corner.any():
-        ref = np.where(np.isnan(far_field), -np.inf, far_field)
         ci = np.flatnonzero(corner)
-        _, has_pure = _nearest_within(rgb, ~band & (D > ref + 0.5 * thr), ci, UNMIX_REACH)
+        _, has_pure = _nearest_within(rgb, ~band & near_side, ci, UNMIX_REACH)
         corner.flat[ci[has_pure]] = False
 
     sheets_far, sheets_near = [], []
@@ -396,8 +397,6 @@ def sheets_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
             # everything below is evaluated on the edge pixels only
             bi = np.flatnonzero(band | corner)
             on_near = seed.ravel()[bi]
-            ref = np.where(np.isnan(far_field), -np.inf, far_field)
-            near_side = D > ref + 0.5 * thr
             # nearest pure pixel of each side within UNMIX_REACH: local colours, no
             # averaging across texture (colours from further say nothing about the pixel)
             near_c, near_ok = _nearest_within(rgb, visible & near_side, bi, UNMIX_REACH)
