@@ -19,8 +19,9 @@ Refocusing (:func:`refocus_estimate`) follows what ``passes.layers_from_passes``
   by the two planes around its disparity; the boxes are taken on blocks of at most 256 x 256 per image and grown by the occlusion
   reach ``A (d_near - d_far)`` of the depth edges in them (the hidden-background fill);
 - compositing: one layer at a time, padded by its kernel radius
-  ``R = ceil(A |d - d_f|) + 1`` and blurred by a float64 FFT of its four channels,
-  plus the kernel, the accumulator and the kernel cache;
+  ``R = ceil(A |d - d_f|) + 1`` and blurred by a float32 FFT of its four channels,
+  with up to two blurred outputs held ahead (the compositor's worker thread), plus the
+  kernel, the accumulator and the kernel cache;
 - the per-pixel working sets of the layer builder and of the output writers.
 
 The byte counts per pixel are measured (``tests/test_budget.py`` checks the estimate
@@ -49,9 +50,12 @@ DEFAULT_FRACTION = 0.5
 #: pixels).
 BUILD_BYTES_PER_PX = 250
 BUILD_BYTES_PER_EDGE_PX = 300
-#: Bytes per padded pixel of one layer's FFT blur (float32 input, float64 copy, the
-#: half spectrum of four channels, its inverse and the output). Measured.
-FFT_BYTES_PER_PX = 128
+#: Bytes per padded pixel of one layer's FFT blur (float32 input, the complex64 half
+#: spectrum of four channels, its float32 inverse and the output: 4 x 16 B).
+FFT_BYTES_PER_PX = 64
+#: Blurred outputs (16 B/px) held besides the one being computed: the compositor's
+#: worker thread runs up to ``composite.PREFETCH_PARTS`` parts ahead.
+HELD_OUTPUTS = 2
 #: Bytes per pixel of writing the result (premultiplied copy, EXR channels, sRGB PNG).
 WRITE_BYTES_PER_PX = 110
 #: Bytes per pixel of the inputs kept during the work (colour float32, depth and
@@ -351,7 +355,8 @@ def _blur_bytes(h: int, w: int, rho: float, H: int, W: int, composite) -> tuple[
         work = (16 * ph * pw + 32 * ph * pw // s
                 + FFT_BYTES_PER_PX * _fast_len(ch) * _fast_len(cw) + 48 * oh * ow)
         return work, 9 * (2 * Rc + 1) ** 2
-    work = FFT_BYTES_PER_PX * _fast_len(oh + 2 * R) * _fast_len(ow + 2 * R) + 16 * oh * ow
+    work = (FFT_BYTES_PER_PX * _fast_len(oh + 2 * R) * _fast_len(ow + 2 * R)
+            + 16 * (1 + HELD_OUTPUTS) * oh * ow)
     return work, 9 * taps
 
 

@@ -82,8 +82,8 @@ def test_huge_blur_is_refused_up_front(tmp_path, case):
     """f/0.01 asked numpy for 64.7 GiB and a card at depth 1e-6 for 821 TiB
     (MemoryError tracebacks); the estimate refuses both before any work. At 512 px,
     f/0.01 and 50 mm give A = 2.5 m x 711 px = 1778 px per unit disparity, a 2963 px
-    radius for d = 2 against d_f = 1/3: an FFT over (512 + 2 x 2964)^2 float64 values
-    of four channels (5.3 GB)."""
+    radius for d = 2 against d_f = 1/3: an FFT over (512 + 2 x 2964)^2 float32 values
+    of four channels (2.7 GB with its spectrum and output), past a 2 GB limit."""
     n = 512
     depth = np.full((n, n), 3.0, np.float32)
     if case == "f/0.01":
@@ -95,7 +95,7 @@ def test_huge_blur_is_refused_up_front(tmp_path, case):
     src = tmp_path / "in.exr"
     write_exr(src, {**channels_from_rgba(np.full((n, n, 4), 0.5, np.float32)), "Depth.Z": depth})
     line = one_line_error(*run("refocus", src, "-o", tmp_path / "out.exr", *args,
-                               "--max-memory-gb", 4)[::2])
+                               "--max-memory-gb", 2)[::2])
     assert "--max-memory-gb" in line and "largest blur radius" in line
     _nothing_written(tmp_path, {"in.exr"})
 

@@ -98,14 +98,16 @@ def _layer_kernel(rho: float, settings: CompositeSettings, cell=None) -> np.ndar
 
 
 def _padded_region(layer: Layer, canvas: tuple[int, int], box: tuple[int, int, int, int],
-                   R: int) -> np.ndarray:
+                   R: int, out: np.ndarray | None = None) -> np.ndarray:
     """Layer content over ``box`` (canvas coordinates) grown by ``R`` on every side.
 
     Zero where the layer has no content; past the canvas edge the content is continued
-    by replication where the layer's box touches that edge (the official padding)."""
+    by replication where the layer's box touches that edge (the official padding).
+    ``out``: a zeroed float32 array of that shape to write into (else a new one)."""
     y0, y1, x0, x1 = box
     hc, wc = canvas
-    out = np.zeros((y1 - y0 + 2 * R, x1 - x0 + 2 * R, layer.shape[2]), np.float32)
+    if out is None:
+        out = np.zeros((y1 - y0 + 2 * R, x1 - x0 + 2 * R, layer.shape[2]), np.float32)
     ly0, ly1, lx0, lx1 = layer.box
     layer.read(out, y0 - R, x0 - R)
     # replication past the canvas edge, where the content touches it
@@ -219,10 +221,10 @@ _TILE = _M.TILE_PX
 
 def _window_cost(h: int, w: int, taps: int) -> float:
     """Relative cost of correlating one padded window of ``h x w`` pixels: per pixel
-    the taps (direct) or the FFT's ``~2.8 log2 n`` (the cost model of
-    :func:`mpib_validate.compositor.kernels.fft_is_cheaper`), whichever is less."""
+    the taps (direct) or the FFT's (:func:`mpib_validate.compositor.kernels.fft_cost`),
+    whichever is less."""
     n = h * w
-    return n * min(taps, 2.5 * math.log2(max(n, 2)) * 9 / 8)
+    return n * min(taps, _k.fft_cost(n))
 
 
 #: Output tile sides (px, multiples of the storage tile) the compositor chooses from.
@@ -263,10 +265,34 @@ def _tile_plan(layer: Layer, R: int, taps: int, box, canvas):
 def _clamp(blurred: np.ndarray) -> np.ndarray:
     """Blurred alpha clipped to [0, 1], colour and extra channels to >= 0 (in place):
     rounding cannot then leave the range of a blur of valid content."""
-    np.clip(blurred[..., 3], 0.0, 1.0, out=blurred[..., 3])
-    np.maximum(blurred[..., :3], 0.0, out=blurred[..., :3])
-    np.maximum(blurred[..., 4:], 0.0, out=blurred[..., 4:])
+    np.maximum(blurred, 0.0, out=blurred)  # every channel at once (contiguous: 3x faster)
+    alpha = blurred[..., 3]
+    np.minimum(alpha, 1.0, out=alpha)
     return blurred
+
+
+def _layer_peaks(layer: Layer) -> np.ndarray:
+    """Largest magnitude of each channel of the layer (the FFT noise floor's scale),
+    kept with the layer: it does not depend on the focus."""
+    peak = layer._memo.get("peaks")
+    if peak is None:
+        peak = layer._memo["peaks"] = _k._channel_peaks(
+            layer.tiles[1] if layer.tiles is not None else layer.rgba)
+    return peak
+
+
+def _straight_max(layer: Layer) -> np.ndarray:
+    """Largest straight (un-premultiplied) value of each colour and extra channel of the
+    layer, for the safe division; kept with the layer."""
+    out = layer._memo.get("straight max")
+    if out is None:
+        rgba = layer.tiles[1] if layer.tiles is not None else layer.rgba
+        a = rgba[..., 3]
+        inv = np.divide(1.0, a, out=np.zeros_like(a), where=a > 0)
+        out = np.array([float((rgba[..., c] * inv).max()) if a.size else 0.0
+                        for c in range(rgba.shape[-1]) if c != 3], np.float32)
+        layer._memo["straight max"] = out
+    return out
 
 
 def _blur_parts(layer: Layer, rho: float, box, canvas, settings: CompositeSettings, cell=None):
@@ -298,14 +324,23 @@ def _blur_parts(layer: Layer, rho: float, box, canvas, settings: CompositeSettin
         yield box, _clamp(_correlate(_padded_region(layer, canvas, box, R), k, settings))
         return
     T, ty, tx = plan
-    peak = _k._channel_peaks(layer.tiles[1] if layer.tiles is not None else layer.rgba)
+    peak = _layer_peaks(layer)
     by0, by1, bx0, bx1 = box
-    per = max(1, _k.BATCH_BYTES // (8 * (T + 2 * R) ** 2 * layer.shape[2]))
+    Hw = T + 2 * R  # a window: the tile grown by the kernel radius
+    method = settings.conv
+    if method == "auto":
+        method = "fft" if _k.fft_is_cheaper(T, T, k) else "direct"
+    # FFT windows are written straight into arrays of the transform's size (zero past
+    # the window), which the transform would otherwise pad with a copy
+    side = _k.fft_size(Hw) if method == "fft" else Hw
+    per = max(1, _k.BATCH_BYTES // (4 * side * side * layer.shape[2]))
     for a in range(0, ty.size, per):
         rects = [(y * T, y * T + T, x * T, x * T + T) for y, x in zip(ty[a:a + per],
                                                                       tx[a:a + per])]
-        windows = np.stack([_padded_region(layer, canvas, r, R) for r in rects])
-        blurred = _clamp(_k.correlate_batch(windows, k, settings.conv, peak))
+        windows = np.zeros((len(rects), side, side, layer.shape[2]), np.float32)
+        for j, r in enumerate(rects):
+            _padded_region(layer, canvas, r, R, windows[j, :Hw, :Hw])
+        blurred = _clamp(_k.correlate_batch(windows, k, method, peak, window=(Hw, Hw)))
         for (y0, y1, x0, x1), b in zip(rects, blurred):
             c = (max(y0, by0), min(y1, by1), max(x0, bx0), min(x1, bx1))
             if c[0] < c[1] and c[2] < c[3]:
@@ -337,7 +372,12 @@ def composite(mpi: MPI, blur_parameter: float, focus_disparity: float,
 def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
                 settings: CompositeSettings, cell, progress):
     """Eq. 1 before the division: ``(acc, cmax)``, the composited premultiplied colour
-    with the normaliser in channel 3 (``(H, W, C)`` float32), and the colour bound."""
+    with the normaliser in channel 3 (``(H, W, C)`` float32), and the colour bound.
+
+    The layers' blurs (:func:`_layer_parts`) run on a worker thread, at most
+    :data:`PREFETCH_PARTS` blurred parts ahead of the "over" steps on the caller's
+    thread (scipy's FFTs and numpy's array operations release the GIL, so the two
+    overlap on two cores; the result is the same, computed in the same order)."""
     if not blur_parameter > 0 or not math.isfinite(blur_parameter):
         raise ValueError(f"blur parameter A must be finite and > 0, got {blur_parameter}")
     H, W, m = mpi.height, mpi.width, mpi.margin
@@ -348,11 +388,60 @@ def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
     frame = (m, m + H, m, m + W)
     ny, nx = -(-canvas[0] // _TILE), -(-canvas[1] // _TILE)
     group_sum, group_tiles, group_id = None, None, None  # the additive slab being summed
-    layers, slab_of = _merge_within_slabs(
-        mpi.layers, _slabs(mpi.layers, (settings.slab_px or 0.0) / blur_parameter))
-    for i, layer in enumerate(layers):  # far to near
-        if progress is not None:
-            progress(i / max(len(layers), 1))
+    layers, slab_of = _slab_layers(mpi, (settings.slab_px or 0.0) / blur_parameter)
+    jobs = _layer_parts(layers, blur_parameter, focus_disparity, settings, cell, canvas,
+                        frame, mpi.colour_max is None)
+    with _Prefetch(jobs, PREFETCH_PARTS) as items:
+        for item in items:
+            if item[0] == "layer":  # far to near
+                _, i, straight_max = item
+                if progress is not None:
+                    progress(i / max(len(layers), 1))
+                if straight_max is not None:
+                    cmax = np.maximum(cmax, straight_max)
+                layer = layers[i]
+                if layer.group is not None:
+                    if group_tiles is not None and slab_of[i] != group_id:
+                        _over_tiles(acc, group_sum, group_tiles, m, frame)
+                        group_tiles = None
+                    if group_sum is None:
+                        group_sum = np.zeros_like(acc)
+                    if group_tiles is None:
+                        group_tiles = np.zeros((ny, nx), bool)
+                    group_id = slab_of[i]
+                continue
+            _, (y0, y1, x0, x1), blurred = item
+            if layer.group is None:
+                region = acc[y0 - m:y1 - m, x0 - m:x1 - m]
+                # acc <- acc (1 - a_blur) + [c a]_blur   (premultiplied colour, and the normaliser)
+                region *= 1.0 - blurred[..., 3:4]
+                region += blurred
+                continue
+            # an additive group: sum its blurred shares, then lay the sum over acc
+            group_sum[y0 - m:y1 - m, x0 - m:x1 - m] += blurred
+            group_tiles[y0 // _TILE:-(-y1 // _TILE), x0 // _TILE:-(-x1 // _TILE)] = True
+    if group_tiles is not None:
+        _over_tiles(acc, group_sum, group_tiles, m, frame)
+    if progress is not None:
+        progress(1.0)
+    return acc, (cmax if mpi.colour_max is None else mpi.colour_max)
+
+
+#: Blurred parts the worker thread of :func:`_accumulate` may hold ahead of the "over"
+#: steps (each at most one batch of tiles, :data:`kernels.BATCH_BYTES` / 2 of float32,
+#: or one layer's box): the memory the overlap costs.
+PREFETCH_PARTS = 2
+
+
+def _layer_parts(layers, blur_parameter, focus_disparity, settings, cell, canvas, frame,
+                 need_cmax: bool):
+    """For each layer far to near: ``("layer", i, straight_max)`` (the largest straight
+    colour of the layer, for the safe division, or None), then its blurred parts
+    ``("part", rect, blurred)`` (:func:`_blur_parts`); a layer whose output box is
+    empty outside the frame has no parts."""
+    m = frame[0]
+    H, W = frame[1] - m, frame[3] - m
+    for i, layer in enumerate(layers):
         rho = blur_parameter * (layer.disparity - focus_disparity)
         if settings.crop:
             R = _reach(rho, settings)
@@ -368,37 +457,80 @@ def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
             box = (y0, y1, x0, x1)
         else:
             box = frame
-        if mpi.colour_max is None:  # colour bound for the safe division
-            rgba = layer.rgba
-            a = rgba[..., 3:4]
-            colour = np.delete(rgba, 3, axis=2)
-            straight = np.divide(colour, a, out=np.zeros_like(colour), where=a > 0)
-            cmax = np.maximum(cmax, straight.reshape(-1, C - 1).max(axis=0))
-        if layer.group is not None:
-            if group_tiles is not None and slab_of[i] != group_id:
-                _over_tiles(acc, group_sum, group_tiles, m, frame)
-                group_tiles = None
-            if group_sum is None:
-                group_sum = np.zeros_like(acc)
-            if group_tiles is None:
-                group_tiles = np.zeros((ny, nx), bool)
-            group_id = slab_of[i]
+        yield "layer", i, (_straight_max(layer) if need_cmax else None)
         for rect, blurred in _blur_parts(layer, rho, box, canvas, settings, cell):
-            y0, y1, x0, x1 = rect
-            if layer.group is None:
-                region = acc[y0 - m:y1 - m, x0 - m:x1 - m]
-                # acc <- acc (1 - a_blur) + [c a]_blur   (premultiplied colour, and the normaliser)
-                region *= 1.0 - blurred[..., 3:4]
-                region += blurred
+            yield "part", rect, blurred
+
+
+class _Prefetch:
+    """Run a generator on a worker thread, at most ``depth`` items ahead of the
+    consumer; items come out in order, and an exception in the generator is raised in
+    the consumer at its place. Leaving the ``with`` block early (an exception in the
+    consumer, e.g. a cancelling ``progress``) stops the worker before returning."""
+
+    _DONE = object()
+
+    def __init__(self, gen, depth: int):
+        import queue
+        import threading
+
+        self._gen, self._queue = gen, queue.Queue(maxsize=depth)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="mpib-blur", daemon=True)
+
+    def _run(self):
+        try:
+            for item in self._gen:
+                if not self._put(("item", item)):
+                    return
+            self._put(("done", None))
+        except BaseException as exc:  # noqa: BLE001 - handed to the consumer
+            self._put(("error", exc))
+
+    def _put(self, msg) -> bool:
+        import queue
+
+        while not self._stop.is_set():
+            try:
+                self._queue.put(msg, timeout=0.05)
+                return True
+            except queue.Full:
                 continue
-            # an additive group: sum its blurred shares, then lay the sum over acc
-            group_sum[y0 - m:y1 - m, x0 - m:x1 - m] += blurred
-            group_tiles[y0 // _TILE:-(-y1 // _TILE), x0 // _TILE:-(-x1 // _TILE)] = True
-    if group_tiles is not None:
-        _over_tiles(acc, group_sum, group_tiles, m, frame)
-    if progress is not None:
-        progress(1.0)
-    return acc, (cmax if mpi.colour_max is None else mpi.colour_max)
+        return False
+
+    def __enter__(self):
+        self._thread.start()
+        return self._items()
+
+    def _items(self):
+        while True:
+            kind, value = self._queue.get()
+            if kind == "item":
+                yield value
+            elif kind == "done":
+                return
+            else:
+                raise value
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join()
+        self._gen.close()
+        return False
+
+
+def _slab_layers(mpi: MPI, span: float):
+    """:func:`_merge_within_slabs` of the MPI's layers for a slab span (1/scene-unit),
+    kept with the MPI: it depends on ``A`` (through the span), not on the focus, so a
+    focus pull merges once. The key holds the layers' identities, so a changed layer
+    list is merged afresh; only the latest span is kept."""
+    key = (span, tuple(id(l) for l in mpi.layers))
+    hit = mpi._derived.get("slabs")
+    if hit is not None and hit[0] == key:
+        return hit[1]
+    merged = _merge_within_slabs(mpi.layers, _slabs(mpi.layers, span))
+    mpi._derived["slabs"] = (key, merged, list(mpi.layers))  # the list keeps the ids alive
+    return merged
 
 
 def _slabs(layers, span: float) -> list:
@@ -495,12 +627,13 @@ def _runs(tiles: np.ndarray, T: int, clip):
 def _normalise(acc: np.ndarray, cmax: np.ndarray) -> np.ndarray:
     """Colour channels (all but channel 3) divided by the normaliser (channel 3) and
     clamped to ``[0, cmax]``; channel 3 becomes the coverage, clipped to [0, 1]."""
-    out = np.zeros_like(acc)
     norm = acc[..., 3:4]
-    for sl, cm in ((slice(0, 3), cmax[:3]), (slice(4, None), cmax[3:])):
-        np.divide(acc[..., sl], norm, out=out[..., sl], where=norm > 0)
-        np.minimum(out[..., sl], cm, out=out[..., sl])
-        np.maximum(out[..., sl], 0.0, out=out[..., sl])
+    # divide every channel at once (contiguous); where the normaliser is not positive
+    # the colour is zero up to the FFT floor, and is divided by 1
+    out = acc / np.where(norm > 0.0, norm, np.float32(1.0))
+    bound = np.concatenate([cmax[:3], [np.inf], cmax[3:]]).astype(np.float32)
+    np.minimum(out, bound, out=out)
+    np.maximum(out, 0.0, out=out)
     out[..., 3] = np.clip(acc[..., 3], 0.0, 1.0)
     return out
 

@@ -22,9 +22,9 @@ at integer radius ``round(r)``, is available as :func:`soft_disk` for comparison
 Convolution paths (all compute the same correlation on a padded array, "valid" mode):
 
 - ``direct``: scipy.ndimage.correlate, O(taps) per pixel;
-- ``fft``: scipy.fft in float64, O(log n) per pixel; rounding noise below
-  ``FFT_FLOOR`` times the input's largest value is cleared, alpha is clamped to [0, 1]
-  and colour to >= 0 (no ringing, no negative values);
+- ``fft``: scipy.fft in float32 (the layers' own precision), O(log n) per pixel;
+  rounding noise below ``FFT_FLOOR`` times the input's largest value is cleared, alpha
+  is clamped to [0, 1] and colour to >= 0 (no ringing, no negative values);
 - ``auto``: whichever the cost model says is cheaper.
 """
 
@@ -37,11 +37,21 @@ import numpy as np
 
 from mpib_validate.cards.samples import concentric_disk
 
-#: Relative level under which FFT output is rounding noise. The FFT runs in float64
-#: (eps 2.2e-16; its error grows like eps * log2(n), ~5e-15 at n = 2^21 values), so
-#: values below this fraction of the input's largest value are set to zero: far below
-#: any float32 result, and it removes ringing and sign noise where nothing is.
-FFT_FLOOR = 1e-12
+#: Precision of the FFT path: float32, the layers' and the output's own precision, at
+#: about half the time and memory of float64. Its rounding error grows like
+#: ``eps log2(n)`` in the worst case (eps 1.2e-7: 2.5e-6 at n = 2^21 values); measured
+#: on disk kernels of 1.5 to 60 px over windows up to 632^2 holding an HDR dot 1000x the
+#: mean, it stays below 3e-8 of the window's largest value (and within 7e-7 of the
+#: peak after Eq. 1's accumulation, against float64 FFTs on the 1080p bench MPI and the
+#: Blender suite's passes).
+FFT_DTYPE = np.float32
+
+#: Relative level under which FFT output is rounding noise: values below this fraction
+#: of the input's largest value (per channel) are set to zero. 30x above the measured
+#: float32 noise (3e-8, see ``FFT_DTYPE``); it removes ringing and sign noise where
+#: nothing is. What it can clear of real content is below 1e-6 of the peak: under
+#: 1/4 of an 8-bit step at display white even next to a 1000x HDR highlight.
+FFT_FLOOR = 1e-6
 
 
 #: Stratified points per unit of ``8 x radius`` along each side of the unit square: the
@@ -372,10 +382,10 @@ def correlate_fft(padded: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     R = kernel_radius(kernel)
     H, W = padded.shape[:2]
     sh = (fft.next_fast_len(H, real=True), fft.next_fast_len(W, real=True))
-    spec = fft.rfft2(padded.astype(np.float64), s=sh, axes=(0, 1), workers=-1)
+    spec = fft.rfft2(padded.astype(FFT_DTYPE, copy=False), s=sh, axes=(0, 1), workers=-1)
     # correlation = convolution with the flipped kernel; the kernel's [0, 0] tap lands
     # at the output offset 2R, which is where the "valid" region starts.
-    kf = fft.rfft2(kernel[::-1, ::-1], s=sh, workers=-1)
+    kf = kernel_spectrum(kernel, sh)
     spec *= kf[..., None]
     full = fft.irfft2(spec, s=sh, axes=(0, 1), workers=-1)
     out = np.ascontiguousarray(full[2 * R:H, 2 * R:W], dtype=np.float32)
@@ -386,25 +396,47 @@ def correlate_fft(padded: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     return out
 
 
-#: Bytes of float64 windows per batch of :func:`correlate_batch` (its spectrum takes
+def kernel_spectrum(kernel: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """``rfft2`` of the flipped kernel at FFT size ``shape`` (complex, ``FFT_DTYPE``):
+    correlation is convolution with the flipped kernel."""
+    from scipy import fft
+
+    return fft.rfft2(kernel[::-1, ::-1].astype(FFT_DTYPE), s=shape, workers=-1)
+
+
+#: Bytes of windows per batch of :func:`correlate_batch` (its spectrum takes
 #: about as much again).
 BATCH_BYTES = 32 << 20
 
 
+def fft_size(n: int) -> int:
+    """The transform length the FFT path uses for ``n`` samples along an axis."""
+    from scipy import fft
+
+    return fft.next_fast_len(n, real=True)
+
+
 def correlate_batch(windows: np.ndarray, kernel: np.ndarray, method: str = "auto",
-                    peak: np.ndarray | None = None) -> np.ndarray:
+                    peak: np.ndarray | None = None,
+                    window: tuple[int, int] | None = None) -> np.ndarray:
     """Valid-mode correlation of each of ``n`` equally sized padded windows
     ``(n, h + 2R, w + 2R, C)`` with one kernel: ``(n, h, w, C)`` float32, each window
     exactly as :func:`correlate` computes it, but in one call (one kernel spectrum for
     all). ``peak``: the per-channel largest magnitude that sets the FFT's noise floor
     (``FFT_FLOOR`` times it is cleared); default: that of the windows.
+    ``window``: the windows' ``(h + 2R, w + 2R)`` when ``windows`` is larger, zero
+    past them (e.g. already at the transform's size, :func:`fft_size`).
 
     Direct: ``scipy.ndimage.correlate`` with the kernel as a ``(1, k, k, 1)`` filter
-    (the same taps in the same order as on one window). FFT: float64 ``rfft2`` over the
-    window axes."""
+    (the same taps in the same order as on one window). FFT: ``FFT_DTYPE`` ``rfft2``
+    over the window axes."""
     from scipy import fft, ndimage
 
     n, Hw, Ww, C = windows.shape
+    if window is not None:
+        Hw, Ww = window
+        if method != "fft" or kernel.shape == (1, 1):
+            windows = windows[:, :Hw, :Ww]
     R = kernel_radius(kernel)
     h, w = Hw - 2 * R, Ww - 2 * R
     if kernel.shape == (1, 1):
@@ -418,13 +450,14 @@ def correlate_batch(windows: np.ndarray, kernel: np.ndarray, method: str = "auto
     if method != "fft":
         raise ValueError(f"unknown convolution method {method!r}; use auto, direct or fft")
     if peak is None:
-        peak = _channel_peaks(windows.reshape(-1, Hw, C))
-    sh = (fft.next_fast_len(Hw, real=True), fft.next_fast_len(Ww, real=True))
-    kf = fft.rfft2(kernel[::-1, ::-1], s=sh, workers=-1)[None, :, :, None]
+        peak = _channel_peaks(windows.reshape(-1, windows.shape[2], C))
+    sh = (fft_size(Hw), fft_size(Ww))
+    kf = kernel_spectrum(kernel, sh)[None, :, :, None]
     out = np.empty((n, h, w, C), np.float32)
-    per = max(1, BATCH_BYTES // (8 * sh[0] * sh[1] * C))
+    per = max(1, BATCH_BYTES // (np.dtype(FFT_DTYPE).itemsize * sh[0] * sh[1] * C))
     for a in range(0, n, per):
-        spec = fft.rfft2(windows[a:a + per].astype(np.float64), s=sh, axes=(1, 2), workers=-1)
+        spec = fft.rfft2(windows[a:a + per].astype(FFT_DTYPE, copy=False), s=sh,
+                         axes=(1, 2), workers=-1)
         spec *= kf
         full = fft.irfft2(spec, s=sh, axes=(1, 2), workers=-1)
         out[a:a + per] = full[:, 2 * R:Hw, 2 * R:Ww]
@@ -433,13 +466,23 @@ def correlate_batch(windows: np.ndarray, kernel: np.ndarray, method: str = "auto
     return out
 
 
+#: Cost of the float32 FFT path per padded pixel, in units of one direct tap per
+#: pixel, per ``log2`` of the window's pixel count. Measured with
+#: :func:`correlate_batch` on 5-channel float32 windows (tiles of 64 to 1024 px, disk
+#: radii 0.7 to 5 px, CPU time): direct costs ~10 ns per tap and pixel, the FFT
+#: ~10.5 ns per pixel and ``log2 n``; the crossover fell between 9 and 25 taps.
+FFT_TAPS_PER_LOG2 = 1.05
+
+
+def fft_cost(n: int) -> float:
+    """The FFT path's cost per pixel of an ``n``-pixel window, in direct taps."""
+    return FFT_TAPS_PER_LOG2 * math.log2(max(n, 2))
+
+
 def fft_is_cheaper(h: int, w: int, kernel: np.ndarray) -> bool:
-    """Cost model: direct costs ~taps per pixel; the FFT ~ 9 transforms of the padded
-    size at ~2.5 log2(n) operations per value (measured on this project's machines,
-    the crossover is near 7x7 kernels)."""
-    taps = kernel.size
-    n = (h + kernel.shape[0]) * (w + kernel.shape[1])
-    return taps > 2.5 * math.log2(max(n, 2)) * 9 / 4 / 2
+    """Cost model: direct costs ~taps per pixel, the FFT :func:`fft_cost` of the
+    padded window (crossover near 5x5 kernels for tiles of 64 px, 7x7 for 1024)."""
+    return kernel.size > fft_cost((h + kernel.shape[0]) * (w + kernel.shape[1]))
 
 
 def correlate(padded: np.ndarray, kernel: np.ndarray, method: str = "auto") -> np.ndarray:

@@ -210,6 +210,9 @@ class MPI:
     #: the largest straight colour per channel, when the builder knows it (saves the
     #: compositor a pass over every layer); None: computed from the layers
     colour_max: np.ndarray | None = None
+    #: derived data that does not depend on the focus (the compositor's merged slabs),
+    #: keyed by what it was derived from, layer identities included
+    _derived: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def grouped(self) -> bool:
