@@ -491,6 +491,7 @@ def _refocus_photo(args) -> int:
         dsrc = str(args.depth)
         D = depth_to_disparity(z, args.far_limit, source=dsrc)
     passes = passes_from_photo(photo, D, dsrc)
+    _set_pixel_model(args, passes)
     if args.K is not None:
         # on a normalised map --focus-disparity is the same number as --disp-focus
         focus = args.disp_focus if args.disp_focus is not None else args.focus_disparity
@@ -542,6 +543,12 @@ def _refocus_photo(args) -> int:
                    f"{photo.encoding.describe()}, disparity refinement {refine}")
 
 
+def _set_pixel_model(args, passes) -> None:
+    """``--pixel-model`` over what the input says (``refocus.pixel_model_of``)."""
+    if getattr(args, "pixel_model", "auto") != "auto":
+        passes.pixel_model = args.pixel_model
+
+
 def cmd_refocus(args) -> int:
     from mpib_validate.io.atomic import check_outputs
     from mpib_validate.layers.passes import depth_to_disparity
@@ -570,6 +577,7 @@ def cmd_refocus(args) -> int:
                        f"groups hold what lies behind the foreground; drop --background")
     if passes is None:
         passes = load_passes(args.input, args.depth, view_layer=args.view_layer)
+    _set_pixel_model(args, passes)
     for notice in passes.notices:
         print(f"mpib refocus: notice: {notice}", file=sys.stderr)
     H, W = passes.depth.shape
@@ -820,6 +828,11 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--view-layer", metavar="NAME",
                    help="the Blender view layer to refocus, when the EXR holds several")
     f.add_argument("--no-preview", action="store_true", help="do not write the PNG preview")
+    f.add_argument("--pixel-model", choices=["auto", "continuous", "texel"], default="auto",
+                   help="how the colour samples the scene, which sets the blur kernel: "
+                        "continuous (a render of geometry, a photograph), texel (this "
+                        "project's card scenes, nearest-texel textures); auto (default): "
+                        "texel for an mpib card-scene render, else continuous")
     f.add_argument("--mpi-cache", metavar="DIR",
                    help="keep the MPI in DIR and reuse it when the input pixels, preset, far "
                         "limit, background and aperture are unchanged (a new focus then only "

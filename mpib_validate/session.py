@@ -142,7 +142,7 @@ def passes_digest(passes: Passes, background=None) -> str:
 
     groups = [a for g in (passes.groups or ()) for a in g]
     return digest_arrays([passes.colour, passes.depth, passes.alpha, len(groups)] + groups
-                         + ["disparity", passes.disparity]
+                         + ["disparity", passes.disparity, "pixel model", passes.pixel_model]
                          + ["background"] + list(background or ()))
 
 
@@ -270,7 +270,7 @@ class RefocusSession:
             p = self._previews.get(s) if kept else None
             if p is None:
                 p = BuiltMPI(downsample_mpi(built.mpi, s), built.opaque, built.disparity,
-                             built.info, built.blur_parameter)
+                             built.info, built.blur_parameter, built.pixel_model)
                 if kept and self.cache_bytes + mpi_bytes(p.mpi) <= self.max_cache_bytes:
                     self._previews[s] = p
             return p

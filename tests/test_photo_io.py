@@ -193,13 +193,13 @@ def _dot_photo(tmp_path, disparity_u8):
 
 
 def _measured_radius(img):
-    """Blur radius of a refocused dot from its second moment: the canonical kernel is a
-    disk of radius r (E[rho^2] = r^2 / 2) convolved with the pixel box twice (1/12 per
-    box and axis, 1/3 in all), so r = sqrt(2 (E[rho^2] - 1/3))."""
+    """Blur radius of a refocused dot from its second moment: a photograph is a
+    continuous scene (``Passes.pixel_model``), whose kernel has the disk's own moment
+    E[rho^2] = r^2 / 2 (``kernels.continuous_radius``), so r = sqrt(2 E[rho^2])."""
     w = img[..., 0].astype(np.float64)
     y, x = np.mgrid[:H, :W]
     m2 = (w * ((y - H // 2) ** 2 + (x - W // 2) ** 2)).sum() / w.sum()
-    return math.sqrt(max(2.0 * (m2 - 1.0 / 3.0), 0.0))
+    return math.sqrt(max(2.0 * m2, 0.0))
 
 
 def _official_radius(K, i, disp_focus, increase_focus_range):
@@ -233,10 +233,9 @@ def test_blur_radius_is_the_papers_for_K_and_disp_focus(tmp_path, plane):
         assert rc == 0, err
         img = read_exr(out).channels
         r = _measured_radius(np.dstack([img["R"]]))
-        # The kernel's rim taps are estimated from ~20 stratified points per square
-        # pixel, and the second-moment formula holds for the continuous disk; measured,
-        # the two agree to 0.003 px at these radii (4.7 to 21 px; below 1 px the
-        # sampling at integer taps makes it 0.03 to 0.08). 0.05 px allows that and
+        # The continuous kernel's moment is the disk's to 0.02 px^2 per axis
+        # (test_kernels), 0.01 px of radius at 4.7 px and less above (these radii are
+        # 4.7 to 21 px). 0.05 px allows that and
         # fails for any other K, a scaled disparity or an offset of the focus range
         # (K / 64 = 0.47 px); one 1/65535 step of the map moves r by 5e-4 px.
         assert r == pytest.approx(expected, abs=0.05)

@@ -66,8 +66,10 @@ def test_refocus_blender_multilayer_and_separate_depth(rendered, tmp_path):
     cam = scene.camera
     depth = res.depth.copy()
     _blender_multilayer(tmp_path / "blender.exr", res.all_in_focus[..., :3], depth)
+    # the card scene's pixels, so its pixel model (the file alone would say continuous)
     r = mpib("refocus", tmp_path / "blender.exr", "-o", tmp_path / "a.exr",
-             "--blur-parameter", cam.blur_parameter, "--focus-disparity", cam.focus_disparity)
+             "--blur-parameter", cam.blur_parameter, "--focus-disparity", cam.focus_disparity,
+             "--pixel-model", "texel")
     assert r.returncode == 0, r.stderr
     write_exr(tmp_path / "colour.exr", channels_from_rgba(res.all_in_focus))
     write_exr(tmp_path / "depth.exr", {"Z": depth})
@@ -242,3 +244,41 @@ def test_refocus_with_a_rendered_background_replaces_the_fill(rendered, tmp_path
     write_exr(tmp_path / "small.exr", channels_from_rgba(bg[:10, :10]))
     r = mpib("refocus", d / "trace.exr", "-o", tmp_path / "o.exr", "--background", tmp_path / "small.exr")
     assert r.returncode == 2 and "small.exr" in r.stderr and "sizes differ" in r.stderr
+
+
+def _axis_moment(img, y, x):
+    """Per-axis second moment of channel 0 about (y, x), weighted by its values."""
+    v = np.asarray(img[..., 0], np.float64)
+    yy = np.arange(v.shape[0])[:, None] - y
+    return float((v * yy * yy).sum() / v.sum())
+
+
+def test_the_inputs_pixel_model_picks_the_kernel(rendered, tmp_path):
+    """A card-scene render of this project (nearest-texel textures) keeps the canonical
+    kernel, exact against the ray tracer; anything else (a Blender render, a photograph)
+    is a continuous scene filtered by the pixel, whose blur adds only the disk's own
+    second moment r^2/4 per axis. On a dot in a flat, opaque 41x41 picture at radius
+    4 px: the continuous kernel adds r^2/4 = 4 px^2 (within 0.02 px^2, its accuracy,
+    see test_kernels), the canonical one 1/6 px^2 more (the bilinear splat's term at this
+    radius, 0.163 measured)."""
+    from mpib_validate.refocus import Passes, load_passes, pixel_model_of, refocus
+
+    d, scene, res = rendered
+    assert load_passes(d / "trace.exr").pixel_model == "texel"
+    assert pixel_model_of(read_exr(d / "trace.exr").header) == "texel"
+    H, W = res.depth.shape
+    _blender_multilayer(tmp_path / "b.exr", res.all_in_focus[..., :3], res.depth)
+    assert load_passes(tmp_path / "b.exr").pixel_model == "continuous"
+
+    n, r = 41, 4.0
+    colour = np.full((n, n, 3), 0.1, np.float32)
+    colour[20, 20] = 10.0
+    depth = np.full((n, n), 2.0)  # d = 0.5; focus at d = 0.25 with A = 16: r = 4 px
+    moments = {}
+    for model in ("continuous", "texel"):
+        p = Passes(colour, depth, "dot", "flat", pixel_model=model)
+        out = refocus(p, 16.0, 0.25, "default").image
+        assert np.all(out[..., 3] == 1.0)
+        moments[model] = _axis_moment(out - 0.1, 20, 20)
+    assert moments["continuous"] == pytest.approx(r * r / 4, abs=0.02)
+    assert moments["texel"] - moments["continuous"] == pytest.approx(0.163, abs=0.01)

@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -55,8 +55,11 @@ class CompositeSettings:
     """How to run Eq. 1.
 
     Attributes:
-        kernel: ``canonical`` (exact for the pixel model) or ``soft`` (official soft disk
-            at integer radius).
+        kernel: ``canonical`` (exact for the ray tracer's pixel model: nearest-texel
+            card textures), ``continuous`` (the canonical kernel at
+            :func:`~mpib_validate.compositor.kernels.continuous_radius`: a render of
+            continuous geometry or a photograph) or ``soft`` (official soft disk at
+            integer radius).
         conv: ``direct``, ``fft`` or ``auto``.
         crop: blur each layer only over its content box plus kernel radius.
         reduce_above: radius (px) above which a layer is blurred at reduced
@@ -90,11 +93,13 @@ PLAIN = CompositeSettings(kernel="canonical", conv="direct", crop=False, reduce_
 def _layer_kernel(rho: float, settings: CompositeSettings, cell=None) -> np.ndarray:
     if settings.kernel == "canonical":
         return _k.disk_kernel(rho, cell)
+    if settings.kernel == "continuous":
+        return _k.disk_kernel(_k.continuous_radius(rho), cell)
     if settings.kernel == "soft":
         if cell is not None:
             raise ValueError("the soft-disk kernel has no sub-aperture form")
         return _k.soft_disk(rho)
-    raise ValueError(f"kernel must be 'canonical' or 'soft', got {settings.kernel!r}")
+    raise ValueError(f"kernel must be 'canonical', 'continuous' or 'soft', got {settings.kernel!r}")
 
 
 def _padded_region(layer: Layer, canvas: tuple[int, int], box: tuple[int, int, int, int],
@@ -131,6 +136,9 @@ def _reduced_kernel(rho: float, s: int, settings, cell):
     kernel's ``1/6``; a disk of radius r has ``r^2/4``. The coarse disk is shrunk so that
     the overall second moment equals the full-resolution kernel's."""
     extra = s * s / 12.0 + s * s / 6.0 - 1.0 / 6.0
+    if settings.kernel == "continuous":  # the fine target is the disk's r^2/4 alone
+        rho = _k.continuous_radius(rho)
+        settings = replace(settings, kernel="canonical")
     r2 = max(rho * rho - 4.0 * extra, 0.0)
     return _layer_kernel(math.copysign(math.sqrt(r2), rho) / s, settings, cell)
 

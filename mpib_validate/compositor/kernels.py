@@ -31,6 +31,7 @@ Convolution paths (all compute the same correlation on a padded array, "valid" m
 from __future__ import annotations
 
 import collections
+import functools
 import math
 
 import numpy as np
@@ -324,6 +325,53 @@ def disk_kernel(rho: float, cell: tuple[int, int, int] | None = None) -> np.ndar
     if cell is None:
         q = abs(q)
     return _disk_cached(q, cell)
+
+
+def continuous_radius(rho: float) -> float:
+    """The signed radius whose canonical kernel has the second moment of a *continuous*
+    scene's blur: ``r^2 / 4`` per axis for a disk of radius ``r = |rho|`` px.
+
+    The canonical kernel is exact for the ray tracer's pixel model (nearest-texel
+    textures: each pixel a constant patch). A render of continuous geometry (Cycles) or
+    a photograph is the scene filtered by the pixel box, sampled; its depth of field is
+    that same filtered scene blurred by the disk alone, so from its samples the blur has
+    the disk's second moment ``r^2/4`` per axis and no more (the band-limited
+    reconstruction adds none). The canonical kernel's bilinear splat adds
+    ``E[f (1 - f)]`` (``f`` the fractional part of the shift ``r mu``; 1/6 for ``r``
+    above ~1.5 px, ``~0.4 r`` below), which on Cycles scenes made small bokeh 3 to 4 %
+    too wide at 3.4 px and in-focus detail softer than Cycles'. This radius is the
+    solution of ``r'^2/4 + E[f(1 - f)](r') = r^2 / 4`` (bisection; the splat term from a
+    stratified set of 4096 disk points; cached per 1/1024 px)."""
+    q = int(round(abs(rho) * 1024.0))
+    return math.copysign(_continuous_radius_q(q), rho)
+
+
+@functools.lru_cache(maxsize=8192)
+def _continuous_radius_q(q: int) -> float:
+    r = q / 1024.0
+    if r == 0.0:
+        return 0.0
+    target = r * r / 4.0
+    if r >= 16.0:  # the splat term is 1/6 to within the point set's accuracy
+        return math.sqrt(r * r - 4.0 / 6.0)
+    lo, hi = 0.0, r
+    for _ in range(30):
+        mid = 0.5 * (lo + hi)
+        x = mid * _axis_points()
+        f = x - np.floor(x)
+        if mid * mid / 4.0 + float(np.mean(f * (1.0 - f))) < target:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
+
+
+@functools.lru_cache(maxsize=1)
+def _axis_points() -> np.ndarray:
+    """x coordinates of a stratified 64 x 64 concentric point set of the unit disk."""
+    g = (np.arange(64) + 0.5) / 64.0
+    u, v = np.meshgrid(g, g)
+    return concentric_disk(u.ravel(), v.ravel())[0]
 
 
 def soft_disk(radius: float) -> np.ndarray:

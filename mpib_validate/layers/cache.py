@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 #: Bumped when the MPI builder or the entry format changes, so old entries miss.
-FORMAT = 1
+FORMAT = 2  # 2: the entry records the input's pixel model
 
 
 def digest_arrays(arrays) -> str:
@@ -67,7 +67,7 @@ def load(folder, key: str):
         info = PassesInfo(planes=int(m["planes"]), fill_fraction=float(m["fill_fraction"]),
                           edge_fraction=float(m["edge_fraction"]), seconds=float(m["seconds"]))
         return BuiltMPI(mpi, bool(m["opaque"]), np.array(m["disparity_range"], np.float64),
-                        info, float(m["blur_parameter"]))
+                        info, float(m["blur_parameter"]), str(m["pixel_model"]))
     except (OSError, ValueError, KeyError, TypeError, EOFError):
         return None
 
@@ -84,7 +84,7 @@ def store(folder, key: str, built) -> list[Path]:
          "fill_fraction": built.info.fill_fraction, "edge_fraction": built.info.edge_fraction,
          "seconds": built.info.seconds, "opaque": built.opaque,
          "disparity_range": [float(D.min()), float(D.max())],
-         "blur_parameter": built.blur_parameter}
+         "blur_parameter": built.blur_parameter, "pixel_model": built.pixel_model}
     write_text(meta, json.dumps(m))
     return [npz, meta]
 
