@@ -73,6 +73,14 @@ class CompositeSettings:
         tiles: with ``crop`` and the numpy backend, blur each layer only on the output
             tiles whose window holds its content, where that costs less
             (:func:`_tile_plan`); the same result up to rounding.
+        chain_px: for an MPI of additive groups whose layers together cover every
+            pixel (one built from passes): consecutive slabs whose disparity ranges lie
+            within this many pixels of blur radius of each other are taken as one
+            surface (a *chain*) and combined with the disjoint "over" before the chain
+            is laid with "over" on the farther composite, renormalised
+            (:class:`_Chain`); ``None``: every slab with "over" (Eq. 1). The
+            output's fourth channel is then not Eq. 1's coverage (the colour is
+            unchanged by the renormalisation; only a zero coverage stays zero).
     """
 
     kernel: str = "canonical"
@@ -82,6 +90,7 @@ class CompositeSettings:
     backend: str = "numpy"
     slab_px: float | None = None
     tiles: bool = True
+    chain_px: float | None = None
 
 
 PLAIN = CompositeSettings(kernel="canonical", conv="direct", crop=False, reduce_above=None)
@@ -350,6 +359,8 @@ def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
     group_sum, group_tiles, group_id = None, None, None  # the additive slab being summed
     layers, slab_of = _merge_within_slabs(
         mpi.layers, _slabs(mpi.layers, (settings.slab_px or 0.0) / blur_parameter))
+    chain = None if settings.chain_px is None else _Chain(
+        layers, slab_of, settings.chain_px / blur_parameter, (ny, nx), m, frame)
     for i, layer in enumerate(layers):  # far to near
         if progress is not None:
             progress(i / max(len(layers), 1))
@@ -376,7 +387,10 @@ def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
             cmax = np.maximum(cmax, straight.reshape(-1, C - 1).max(axis=0))
         if layer.group is not None:
             if group_tiles is not None and slab_of[i] != group_id:
-                _over_tiles(acc, group_sum, group_tiles, m, frame)
+                if chain is None:
+                    _over_tiles(acc, group_sum, group_tiles, m, frame)
+                else:
+                    chain.push(acc, group_sum, group_tiles, group_id)
                 group_tiles = None
             if group_sum is None:
                 group_sum = np.zeros_like(acc)
@@ -395,7 +409,12 @@ def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
             group_sum[y0 - m:y1 - m, x0 - m:x1 - m] += blurred
             group_tiles[y0 // _TILE:-(-y1 // _TILE), x0 // _TILE:-(-x1 // _TILE)] = True
     if group_tiles is not None:
-        _over_tiles(acc, group_sum, group_tiles, m, frame)
+        if chain is None:
+            _over_tiles(acc, group_sum, group_tiles, m, frame)
+        else:
+            chain.push(acc, group_sum, group_tiles, group_id)
+    if chain is not None:
+        chain.flush(acc)
     if progress is not None:
         progress(1.0)
     return acc, (cmax if mpi.colour_max is None else mpi.colour_max)
@@ -490,6 +509,93 @@ def _runs(tiles: np.ndarray, T: int, clip):
             x0, x1 = max(a * T, cx0), min(b * T, cx1)
             if x0 < x1:
                 yield y0, y1, x0, x1
+
+
+#: The farther composite is renormalised by ``1 / max(n, _RENORM_FLOOR)`` (``n`` its
+#: normaliser): the FFT's noise where a blur has no content (1e-12 of the channel
+#: peaks, at most a few for summed groups) is then raised to at most 1e-8, invisible;
+#: a real coverage below the floor is raised in proportion, continuously.
+_RENORM_FLOOR = 1e-3
+
+
+class _Chain:
+    """Slabs of one surface combined before they are laid on what lies behind them.
+
+    Eq. 1 lays each slab with "over": ``acc <- G + (1 - a_G) acc``. Two failures of
+    that on an MPI built from passes (every pixel is covered by some layer, so the
+    composite of all layers is opaque; a coverage below 1 is a hole, not a view):
+
+    - *cracks*: where two slabs of one continuous surface meet, their blurred edges
+      are complementary (``a_1 + a_2 = 1``) but "over" leaves ``(1 - a_1)(1 - a_2)``
+      of what lies behind showing through (up to 1/4). The *disjoint over* of
+      Porter and Duff, ``C <- G_2 + min(1, (1 - a_2) / a_1) G_1``, sums the two where
+      their coverages add up to at most 1 (disjoint, as at a seam) and lets the
+      nearer one hide the farther where they overlap (``a_1 = 1``: it is "over");
+    - *holes*: the fill behind an occluder reaches only ``A (d_near - d_far)``, so a
+      farther layer's blur is partly empty next to the occluder's silhouette (its
+      normaliser ``n < 1``), and Eq. 1's final division gives the missing share to
+      every layer, the occluder's colour too (a halo of it). The rays that miss the
+      occluder see the farther surface: the farther composite is renormalised,
+      ``acc <- acc / n``, before a chain is laid on it.
+
+    Consecutive slabs are one chain while the disparity gap between them is within
+    ``gap`` (the planes of one continuous surface are a plane step apart, a gap in
+    the content more); the disjoint over inside a chain, renormalisation and "over"
+    between chains (not inside one: a chain's own partial coverage at a crack is what
+    the disjoint over closes). Each step works on the canvas tiles (side ``_TILE``)
+    that the slab wrote, as :func:`_over_tiles` does.
+    """
+
+    def __init__(self, layers, slab_of, gap: float, tiles_shape, margin: int, frame):
+        self.lo, self.hi = {}, {}
+        for layer, s in zip(layers, slab_of):
+            if s is not None:
+                self.lo[s] = min(self.lo.get(s, math.inf), layer.disparity)
+                self.hi[s] = max(self.hi.get(s, -math.inf), layer.disparity)
+        self.gap, self.m, self.frame = gap, margin, frame
+        self.shape = tiles_shape
+        self.sum = None  # the chain's combined premultiplied colour and normaliser
+        self.tiles = None
+        self.last = None
+
+    def push(self, acc, group_sum, group_tiles, slab) -> None:
+        """Add the summed slab ``group_sum`` (written on ``group_tiles``; cleared here)."""
+        if self.sum is None:
+            self.sum = np.zeros_like(acc)
+        if self.tiles is not None and self.lo[slab] - self.hi[self.last] > self.gap:
+            self.flush(acc)
+        if self.tiles is None:
+            self.tiles = np.zeros(self.shape, bool)
+        m = self.m
+        for y0, y1, x0, x1 in _runs(group_tiles, _TILE, self.frame):
+            g = group_sum[y0 - m:y1 - m, x0 - m:x1 - m]
+            c = self.sum[y0 - m:y1 - m, x0 - m:x1 - m]
+            _disjoint_over(c, g)
+            g[...] = 0.0
+        self.tiles |= group_tiles
+        self.last = slab
+
+    def flush(self, acc) -> None:
+        """Lay the chain on ``acc`` (renormalised) with "over"; start a new chain."""
+        if self.tiles is None:
+            return
+        m = self.m
+        for y0, y1, x0, x1 in _runs(self.tiles, _TILE, self.frame):
+            region = acc[y0 - m:y1 - m, x0 - m:x1 - m]
+            n = region[..., 3:4]
+            region *= np.where(n > 0, 1.0 / np.maximum(n, _RENORM_FLOOR), 1.0).astype(np.float32)
+        _over_tiles(acc, self.sum, self.tiles, m, self.frame)
+        self.tiles = None
+
+
+def _disjoint_over(under: np.ndarray, g: np.ndarray) -> None:
+    """``under <- g + min(1, (1 - a_g) / a_u) under`` in place (Porter-Duff disjoint
+    over; ``a`` the normalisers, clipped to 1): the sum where the two coverages add up
+    to at most 1, the nearer ``g`` in front where they overlap."""
+    free = 1.0 - np.minimum(g[..., 3:4], 1.0)
+    a = np.minimum(under[..., 3:4], 1.0)
+    under *= np.where(a > free, free / np.maximum(a, 1e-30), 1.0).astype(np.float32)
+    under += g
 
 
 def _normalise(acc: np.ndarray, cmax: np.ndarray) -> np.ndarray:
