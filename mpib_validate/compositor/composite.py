@@ -564,13 +564,17 @@ class _Chain:
             self.sum = np.zeros_like(acc)
         if self.tiles is not None and self.lo[slab] - self.hi[self.last] > self.gap:
             self.flush(acc)
-        if self.tiles is None:
+        fresh = self.tiles is None  # the chain's sum is zero: the slab is copied in
+        if fresh:
             self.tiles = np.zeros(self.shape, bool)
         m = self.m
         for y0, y1, x0, x1 in _runs(group_tiles, _TILE, self.frame):
             g = group_sum[y0 - m:y1 - m, x0 - m:x1 - m]
             c = self.sum[y0 - m:y1 - m, x0 - m:x1 - m]
-            _disjoint_over(c, g)
+            if fresh:
+                c[...] = g
+            else:
+                _disjoint_over(c, g)
             g[...] = 0.0
         self.tiles |= group_tiles
         self.last = slab
@@ -582,8 +586,8 @@ class _Chain:
         m = self.m
         for y0, y1, x0, x1 in _runs(self.tiles, _TILE, self.frame):
             region = acc[y0 - m:y1 - m, x0 - m:x1 - m]
-            n = region[..., 3:4]
-            region *= np.where(n > 0, 1.0 / np.maximum(n, _RENORM_FLOOR), 1.0).astype(np.float32)
+            # where n = 0 the colour is 0 too (up to FFT noise, raised to 1e-9 at most)
+            region *= 1.0 / np.maximum(region[..., 3:4], np.float32(_RENORM_FLOOR))
         _over_tiles(acc, self.sum, self.tiles, m, self.frame)
         self.tiles = None
 
@@ -592,9 +596,13 @@ def _disjoint_over(under: np.ndarray, g: np.ndarray) -> None:
     """``under <- g + min(1, (1 - a_g) / a_u) under`` in place (Porter-Duff disjoint
     over; ``a`` the normalisers, clipped to 1): the sum where the two coverages add up
     to at most 1, the nearer ``g`` in front where they overlap."""
-    free = 1.0 - np.minimum(g[..., 3:4], 1.0)
-    a = np.minimum(under[..., 3:4], 1.0)
-    under *= np.where(a > free, free / np.maximum(a, 1e-30), 1.0).astype(np.float32)
+    free = 1.0 - np.minimum(g[..., 3:4], np.float32(1.0))
+    # min(1, free / a) = free / max(a, free); a clipped to 1 is a <= 1, so max(a, free)
+    # needs no clip; 1e-30 where both are 0 (then ``under`` is 0 as well)
+    denom = np.maximum(under[..., 3:4], free)
+    np.minimum(denom, np.float32(1.0), out=denom)
+    np.maximum(denom, np.float32(1e-30), out=denom)
+    under *= free / denom
     under += g
 
 
