@@ -21,6 +21,10 @@ renders the MPI through every aperture sample instead (exact for fronto-parallel
 layers); :func:`render_subapertures` sits between the two: it splits the aperture into
 ``k x k`` equal-area parts, composites each with Eq. 1 using that part's own kernels,
 and averages them (``k = 1`` is Eq. 1, large ``k`` tends to the exact renderer).
+For an MPI of additive groups built from passes (its layers together cover every
+pixel), ``CompositeSettings.chain_px`` lays the slabs of one surface with the disjoint
+"over" and each such chain on the renormalised farther composite (:class:`_Chain`),
+which removes Eq. 1's cracks between slabs and its halos where the fill leaves a hole.
 
 Fast paths, all optional and each checked against the plain path in the tests:
 
