@@ -397,6 +397,8 @@ def refocus_estimate(disparity: np.ndarray, blur_parameter: float, focus_dispari
         kern = max(kern, kb)
         kernels_total += kb
     acc = 32 * px if p.subapertures == 1 else 64 * px
+    if p.composite.chain_px is not None:  # the chain's own sum (composite._Chain)
+        acc += 16 * px
     parts = {
         "inputs": (INPUT_BYTES_PER_PX + (16 if background else 0)) * px,
         "layers": layers,

@@ -21,6 +21,10 @@ renders the MPI through every aperture sample instead (exact for fronto-parallel
 layers); :func:`render_subapertures` sits between the two: it splits the aperture into
 ``k x k`` equal-area parts, composites each with Eq. 1 using that part's own kernels,
 and averages them (``k = 1`` is Eq. 1, large ``k`` tends to the exact renderer).
+For an MPI of additive groups built from passes (its layers together cover every
+pixel), ``CompositeSettings.chain_px`` lays the slabs of one surface with the disjoint
+"over" and each such chain on the renormalised farther composite (:class:`_Chain`),
+which removes Eq. 1's cracks between slabs and its halos where the fill leaves a hole.
 
 Fast paths, all optional and each checked against the plain path in the tests:
 
@@ -76,6 +80,14 @@ class CompositeSettings:
         tiles: with ``crop`` and the numpy backend, blur each layer only on the output
             tiles whose window holds its content, where that costs less
             (:func:`_tile_plan`); the same result up to rounding.
+        chain_px: for an MPI of additive groups whose layers together cover every
+            pixel (one built from passes): consecutive slabs whose disparity ranges lie
+            within this many pixels of blur radius of each other are taken as one
+            surface (a *chain*) and combined with the disjoint "over" before the chain
+            is laid with "over" on the farther composite, renormalised
+            (:class:`_Chain`); ``None``: every slab with "over" (Eq. 1). The
+            output's fourth channel is then not Eq. 1's coverage (the colour is
+            unchanged by the renormalisation; only a zero coverage stays zero).
     """
 
     kernel: str = "canonical"
@@ -85,6 +97,7 @@ class CompositeSettings:
     backend: str = "numpy"
     slab_px: float | None = None
     tiles: bool = True
+    chain_px: float | None = None
 
 
 PLAIN = CompositeSettings(kernel="canonical", conv="direct", crop=False, reduce_above=None)
@@ -397,6 +410,8 @@ def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
     ny, nx = -(-canvas[0] // _TILE), -(-canvas[1] // _TILE)
     group_sum, group_tiles, group_id = None, None, None  # the additive slab being summed
     layers, slab_of = _slab_layers(mpi, (settings.slab_px or 0.0) / blur_parameter)
+    chain = None if settings.chain_px is None else _Chain(
+        layers, slab_of, settings.chain_px / blur_parameter, (ny, nx), m, frame)
     jobs = _layer_parts(layers, blur_parameter, focus_disparity, settings, cell, canvas,
                         frame, mpi.colour_max is None)
     with _Prefetch(jobs, PREFETCH_PARTS) as items:
@@ -410,7 +425,10 @@ def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
                 layer = layers[i]
                 if layer.group is not None:
                     if group_tiles is not None and slab_of[i] != group_id:
-                        _over_tiles(acc, group_sum, group_tiles, m, frame)
+                        if chain is None:
+                            _over_tiles(acc, group_sum, group_tiles, m, frame)
+                        else:
+                            chain.push(acc, group_sum, group_tiles, group_id)
                         group_tiles = None
                     if group_sum is None:
                         group_sum = np.zeros_like(acc)
@@ -429,7 +447,12 @@ def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
             group_sum[y0 - m:y1 - m, x0 - m:x1 - m] += blurred
             group_tiles[y0 // _TILE:-(-y1 // _TILE), x0 // _TILE:-(-x1 // _TILE)] = True
     if group_tiles is not None:
-        _over_tiles(acc, group_sum, group_tiles, m, frame)
+        if chain is None:
+            _over_tiles(acc, group_sum, group_tiles, m, frame)
+        else:
+            chain.push(acc, group_sum, group_tiles, group_id)
+    if chain is not None:
+        chain.flush(acc)
     if progress is not None:
         progress(1.0)
     return acc, (cmax if mpi.colour_max is None else mpi.colour_max)
@@ -630,6 +653,102 @@ def _runs(tiles: np.ndarray, T: int, clip):
             x0, x1 = max(a * T, cx0), min(b * T, cx1)
             if x0 < x1:
                 yield y0, y1, x0, x1
+
+
+#: The farther composite is renormalised by ``1 / max(n, _RENORM_FLOOR)`` (``n`` its
+#: normaliser): where a blur has no content the FFT's noise is cleared below
+#: ``kernels.FFT_FLOOR`` (1e-6 of the channel peaks), so what is raised is content,
+#: whose float32 rounding (below 3e-8 of the peak) is raised with it by at most 1e3;
+#: a real coverage below the floor is raised in proportion, continuously.
+_RENORM_FLOOR = 1e-3
+
+
+class _Chain:
+    """Slabs of one surface combined before they are laid on what lies behind them.
+
+    Eq. 1 lays each slab with "over": ``acc <- G + (1 - a_G) acc``. Two failures of
+    that on an MPI built from passes (every pixel is covered by some layer, so the
+    composite of all layers is opaque; a coverage below 1 is a hole, not a view):
+
+    - *cracks*: where two slabs of one continuous surface meet, their blurred edges
+      are complementary (``a_1 + a_2 = 1``) but "over" leaves ``(1 - a_1)(1 - a_2)``
+      of what lies behind showing through (up to 1/4). The *disjoint over* of
+      Porter and Duff, ``C <- G_2 + min(1, (1 - a_2) / a_1) G_1``, sums the two where
+      their coverages add up to at most 1 (disjoint, as at a seam) and lets the
+      nearer one hide the farther where they overlap (``a_1 = 1``: it is "over");
+    - *holes*: the fill behind an occluder reaches only ``A (d_near - d_far)``, so a
+      farther layer's blur is partly empty next to the occluder's silhouette (its
+      normaliser ``n < 1``), and Eq. 1's final division gives the missing share to
+      every layer, the occluder's colour too (a halo of it). The rays that miss the
+      occluder see the farther surface: the farther composite is renormalised,
+      ``acc <- acc / n``, before a chain is laid on it.
+
+    Consecutive slabs are one chain while the disparity gap between them is within
+    ``gap`` (the planes of one continuous surface are a plane step apart, a gap in
+    the content more); the disjoint over inside a chain, renormalisation and "over"
+    between chains (not inside one: a chain's own partial coverage at a crack is what
+    the disjoint over closes). Each step works on the canvas tiles (side ``_TILE``)
+    that the slab wrote, as :func:`_over_tiles` does.
+    """
+
+    def __init__(self, layers, slab_of, gap: float, tiles_shape, margin: int, frame):
+        self.lo, self.hi = {}, {}
+        for layer, s in zip(layers, slab_of):
+            if s is not None:
+                self.lo[s] = min(self.lo.get(s, math.inf), layer.disparity)
+                self.hi[s] = max(self.hi.get(s, -math.inf), layer.disparity)
+        self.gap, self.m, self.frame = gap, margin, frame
+        self.shape = tiles_shape
+        self.sum = None  # the chain's combined premultiplied colour and normaliser
+        self.tiles = None
+        self.last = None
+
+    def push(self, acc, group_sum, group_tiles, slab) -> None:
+        """Add the summed slab ``group_sum`` (written on ``group_tiles``; cleared here)."""
+        if self.sum is None:
+            self.sum = np.zeros_like(acc)
+        if self.tiles is not None and self.lo[slab] - self.hi[self.last] > self.gap:
+            self.flush(acc)
+        fresh = self.tiles is None  # the chain's sum is zero: the slab is copied in
+        if fresh:
+            self.tiles = np.zeros(self.shape, bool)
+        m = self.m
+        for y0, y1, x0, x1 in _runs(group_tiles, _TILE, self.frame):
+            g = group_sum[y0 - m:y1 - m, x0 - m:x1 - m]
+            c = self.sum[y0 - m:y1 - m, x0 - m:x1 - m]
+            if fresh:
+                c[...] = g
+            else:
+                _disjoint_over(c, g)
+            g[...] = 0.0
+        self.tiles |= group_tiles
+        self.last = slab
+
+    def flush(self, acc) -> None:
+        """Lay the chain on ``acc`` (renormalised) with "over"; start a new chain."""
+        if self.tiles is None:
+            return
+        m = self.m
+        for y0, y1, x0, x1 in _runs(self.tiles, _TILE, self.frame):
+            region = acc[y0 - m:y1 - m, x0 - m:x1 - m]
+            # where n = 0 the colour is 0 too (up to FFT noise, raised to 1e-9 at most)
+            region *= 1.0 / np.maximum(region[..., 3:4], np.float32(_RENORM_FLOOR))
+        _over_tiles(acc, self.sum, self.tiles, m, self.frame)
+        self.tiles = None
+
+
+def _disjoint_over(under: np.ndarray, g: np.ndarray) -> None:
+    """``under <- g + min(1, (1 - a_g) / a_u) under`` in place (Porter-Duff disjoint
+    over; ``a`` the normalisers, clipped to 1): the sum where the two coverages add up
+    to at most 1, the nearer ``g`` in front where they overlap."""
+    free = 1.0 - np.minimum(g[..., 3:4], np.float32(1.0))
+    # min(1, free / a) = free / max(a, free); a clipped to 1 is a <= 1, so max(a, free)
+    # needs no clip; 1e-30 where both are 0 (then ``under`` is 0 as well)
+    denom = np.maximum(under[..., 3:4], free)
+    np.minimum(denom, np.float32(1.0), out=denom)
+    np.maximum(denom, np.float32(1e-30), out=denom)
+    under *= free / denom
+    under += g
 
 
 def _normalise(acc: np.ndarray, cmax: np.ndarray) -> np.ndarray:
