@@ -89,7 +89,7 @@ def occlusion_region(disparity: np.ndarray, blur_parameter: float, threshold: fl
     if not seed.any():
         return region, np.full(D.shape, np.nan)
     radius = np.where(seed, blur_parameter * (D - np.where(seed, far, D)), 0.0)
-    _, (iy, ix) = ndimage.distance_transform_edt(~seed, return_indices=True)
+    iy, ix = ndimage.distance_transform_edt(~seed, return_distances=False, return_indices=True)
     far_field = far[iy, ix]
     r = radius[seed]
     lo, hi = max(r.min(), 1.0), max(r.max(), 1.0)
@@ -99,8 +99,16 @@ def occlusion_region(disparity: np.ndarray, blur_parameter: float, threshold: fl
         bucket = seed & (radius <= edges[k + 1]) & ((radius > edges[k]) if k else True)
         if not bucket.any():
             continue
-        dist = ndimage.distance_transform_edt(~bucket)
-        region |= dist <= math.ceil(radius[bucket].max())
+        # only pixels within R of the bucket can join: the transform runs on the
+        # bucket's box grown by R (it holds every seed of the bucket, so each distance
+        # there is the full frame's)
+        R = math.ceil(radius[bucket].max())
+        rows = np.flatnonzero(bucket.any(axis=1))
+        cols = np.flatnonzero(bucket.any(axis=0))
+        y0, y1 = max(rows[0] - R, 0), min(rows[-1] + R + 1, D.shape[0])
+        x0, x1 = max(cols[0] - R, 0), min(cols[-1] + R + 1, D.shape[1])
+        dist = ndimage.distance_transform_edt(~bucket[y0:y1, x0:x1])
+        region[y0:y1, x0:x1] |= dist <= R
     region &= D > far_field + 0.5 * threshold
     return region, far_field
 
