@@ -133,9 +133,12 @@ def push_pull(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
         if h <= 1 and wd <= 1:
             break
         ph, pw = h + (h % 2), wd + (wd % 2)
-        pv = np.zeros((ph, pw, v.shape[2]))
-        pwgt = np.zeros((ph, pw))
-        pv[:h, :wd], pwgt[:h, :wd] = cur_v, cur_w
+        if (ph, pw) == (h, wd):  # even: nothing to pad (zeros would add nothing)
+            pv, pwgt = cur_v, cur_w
+        else:
+            pv = np.zeros((ph, pw, v.shape[2]))
+            pwgt = np.zeros((ph, pw))
+            pv[:h, :wd], pwgt[:h, :wd] = cur_v, cur_w
         sv = _sum2x2(pv)
         sw = _sum2x2(pwgt)
         # normalised colour times clamped weight (premultiplied again)
@@ -145,8 +148,15 @@ def push_pull(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
     # push
     filled = np.divide(pyr[-1][0], pyr[-1][1][..., None], out=np.zeros_like(pyr[-1][0]),
                        where=pyr[-1][1][..., None] > 0)
-    for lv, lw in reversed(pyr[:-1]):
+    binary = bool(((w == 0) | (w == 1)).all())
+    for level, (lv, lw) in reversed(list(enumerate(pyr[:-1]))):
         up = _upsample2(filled, lw.shape)
+        if level == 0 and binary:
+            # weights 0 or 1: w own + (1 - w) up is own or up (+ 0.0, as the sum gives +0
+            # for -0), the same bits without the blend
+            filled = np.where(lw[..., None] > 0, lv, up)
+            filled += 0.0
+            continue
         own = np.divide(lv, lw[..., None], out=np.zeros_like(lv), where=lw[..., None] > 0)
         filled = lw[..., None] * own + (1.0 - lw[..., None]) * up
     return filled
@@ -163,10 +173,28 @@ def _upsample2(coarse: np.ndarray, shape) -> np.ndarray:
     coordinate (i + 0.5) / 2 - 0.5), edges clamped; separable, so two passes of
     weights 3/4 and 1/4."""
     def axis_up(a, n, ax):
-        i = np.arange(n)
-        near = np.clip(i // 2, 0, a.shape[ax] - 1)
-        other = np.clip(np.where(i % 2 == 0, i // 2 - 1, i // 2 + 1), 0, a.shape[ax] - 1)
-        return 0.75 * np.take(a, near, axis=ax) + 0.25 * np.take(a, other, axis=ax)
+        # with slices: fine index 2k is 3/4 coarse k + 1/4 coarse k - 1, fine 2k + 1 is
+        # 3/4 coarse k + 1/4 coarse k + 1 (indices clamped to the coarse range)
+        def sl(*args):
+            idx = [slice(None)] * a.ndim
+            idx[ax] = slice(*args)
+            return tuple(idx)
+
+        m = a.shape[ax]
+        ne, no = (n + 1) // 2, n // 2
+        shape_out = list(a.shape)
+        shape_out[ax] = n
+        out = np.empty(shape_out)
+        ev, od = out[sl(0, None, 2)], out[sl(1, None, 2)]
+        np.multiply(a[sl(0, ne)], 0.75, out=ev)
+        ev[sl(1, None)] += 0.25 * a[sl(0, ne - 1)]
+        ev[sl(0, 1)] += 0.25 * a[sl(0, 1)]
+        np.multiply(a[sl(0, no)], 0.75, out=od)
+        last = min(no, m - 1)  # odd fine indices whose k + 1 is a coarse index
+        od[sl(0, last)] += 0.25 * a[sl(1, last + 1)]
+        if last < no:
+            od[sl(last, None)] += 0.25 * a[sl(m - 1, m)]
+        return out
 
     return axis_up(axis_up(coarse, shape[0], 0), shape[1], 1)
 
