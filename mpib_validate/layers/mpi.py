@@ -516,23 +516,24 @@ SPLIT_CHUNK_PX = 1 << 20
 
 def _share_parts(split: str, d, alpha, planes, snap):
     """The parts of a split (:func:`layers_from_sheets`): ``[(plane index, share alpha,
-    role, cover_is_alpha)]``. ``role`` 0 is content on its plane exactly, 1 the far and
-    2 the near share of an interval (additive); ``cover_is_alpha``: a nearer sheet in the
-    same layer hides a farther one by the content's whole alpha (both additive shares,
-    or the nearest split) rather than by this share's."""
+    where the share is > 0, role, cover_is_alpha)]``. ``role`` 0 is content on its plane
+    exactly, 1 the far and 2 the near share of an interval (additive);
+    ``cover_is_alpha``: a nearer sheet in the same layer hides a farther one by the
+    content's whole alpha (both additive shares, or the nearest split) rather than by
+    this share's."""
     if split == "nearest":
-        return [(np.abs(d[..., None] - planes).argmin(axis=-1), alpha, 0, True)]
+        return [(np.abs(d[..., None] - planes).argmin(axis=-1), alpha, alpha > 0, 0, True)]
     if split == "linear":
         idx, a_lo, a_hi = split_between_planes(d, alpha, planes, snap)
-        return [(idx, a_lo, 0, False), (np.minimum(idx + 1, len(planes) - 1), a_hi, 1, False)]
+        return [(idx, a_lo, a_lo > 0, 0, False),
+                (np.minimum(idx + 1, len(planes) - 1), a_hi, a_hi > 0, 1, False)]
     if split == "additive":
         idx, a_lo, a_hi = split_between_planes(d, alpha, planes, snap, additive=True)
-        inside = (a_lo > 0) & (a_hi > 0)  # strictly between two planes
+        pos_lo, pos_hi = a_lo > 0, a_hi > 0
+        inside = pos_lo & pos_hi  # strictly between two planes
         hi = np.minimum(idx + 1, len(planes) - 1)
-        return [(idx, np.where(inside, 0.0, a_lo), 0, True),
-                (hi, np.where(inside, 0.0, a_hi), 0, True),
-                (idx, np.where(inside, a_lo, 0.0), 1, True),
-                (hi, np.where(inside, a_hi, 0.0), 2, True)]
+        return [(idx, a_lo, pos_lo & ~pos_hi, 0, True), (hi, a_hi, pos_hi & ~pos_lo, 0, True),
+                (idx, a_lo, inside, 1, True), (hi, a_hi, inside, 2, True)]
     raise ValueError(f"split must be 'linear', 'additive' or 'nearest', got {split!r}")
 
 
@@ -607,10 +608,9 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
             kc = keep[k0:k0 + SPLIT_CHUNK_PX]
             got = _share_parts(split, src.disparity[kc], src.alpha[kc], planes, snap)
             if parts is None:
-                parts = [([], [], [], role, cover) for _, _, role, cover in got]
+                parts = [([], [], [], role, cover) for _, _, _, role, cover in got]
             anyp = np.zeros(kc.size, bool)
-            for (index, a, _, _), (s_l, p_l, a_l, _, _) in zip(got, parts):
-                m = a > 0
+            for (index, a, m, _, _), (s_l, p_l, a_l, _, _) in zip(got, parts):
                 anyp |= m
                 s_l.append(kc[m].astype(idx_dtype))
                 p_l.append(index[m].astype(plane_dtype))
