@@ -203,11 +203,17 @@ def _presence_extent(s_lo: np.ndarray, s_hi: np.ndarray, n: int, axis: int):
     return first, last
 
 
-def _plane_tile_area(D: np.ndarray, planes: np.ndarray) -> np.ndarray:
+def _plane_tile_area(D: np.ndarray, planes: np.ndarray, slab: float | None = None
+                     ) -> np.ndarray:
     """Pixels of the canvas-aligned storage tiles (:data:`mpi.TILE_PX`) that may hold
     each plane: a tile holds plane ``k`` when its disparity range reaches the interval
-    around ``d_k`` (every pixel is shared by the two planes around its disparity)."""
-    from mpib_validate.layers.mpi import TILE_PX as T
+    around ``d_k`` (every pixel is shared by the two planes around its disparity).
+
+    ``slab`` (disparity; the additive split's ``slab_px / A``): the plane's share of
+    the interval below it and of the one above it are two layers, each with its own
+    tiles, where the two intervals fall in different slabs
+    (:func:`mpi._slab_of_groups`); the plane then stores the tiles of each interval."""
+    from mpib_validate.layers.mpi import TILE_PX as T, _slab_of_groups
 
     H, W = D.shape
     n = len(planes)
@@ -217,11 +223,25 @@ def _plane_tile_area(D: np.ndarray, planes: np.ndarray) -> np.ndarray:
     s_lo = np.clip(np.searchsorted(planes, lo, side="right") - 1, 0, n - 1)
     s_hi = np.clip(np.searchsorted(planes, hi, side="right"), 0, n - 1)
     diff = np.bincount(s_lo, minlength=n + 1) - np.bincount(s_hi + 1, minlength=n + 1)
-    return np.cumsum(diff[:n]).astype(np.float64) * T * T
+    union = np.cumsum(diff[:n]).astype(np.float64) * T * T
+    if slab is None or n < 2:
+        return union
+    # tiles reaching each interval (d_k, d_k+1), k < n - 1
+    i_lo = np.clip(np.searchsorted(planes, lo, side="right") - 1, 0, n - 2)
+    i_hi = np.clip(np.searchsorted(planes, hi, side="left") - 1, 0, n - 2)
+    i_hi = np.maximum(i_hi, i_lo)
+    diff = np.bincount(i_lo, minlength=n) - np.bincount(i_hi + 1, minlength=n)
+    per = np.cumsum(diff[:n - 1]).astype(np.float64) * T * T
+    slab_of = _slab_of_groups(planes, slab)
+    out = union.copy()
+    for k in range(1, n - 1):  # plane k between interval k - 1 (below) and k (above)
+        if slab_of[2 * k - 1] != slab_of[2 * k + 1]:
+            out[k] = per[k - 1] + per[k]
+    return out
 
 
 def _plane_boxes(D: np.ndarray, planes: np.ndarray, A: float, jump: float,
-                 tiles: bool = False):
+                 tiles: bool = False, slab: float | None = None):
     """Estimated ``(height, width)`` of each plane's content box (see the module
     docstring); with ``tiles``, also the pixels each plane stores: its tile area
     (:func:`_plane_tile_area`) where a layer is kept as tiles
@@ -237,14 +257,12 @@ def _plane_boxes(D: np.ndarray, planes: np.ndarray, A: float, jump: float,
     c0, c1 = _presence_extent(s_lo, s_hi, n, 1)
     h = np.where(r1 >= r0, np.minimum((r1 - r0 + 1) * b, H), 0)
     w = np.where(c1 >= c0, np.minimum((c1 - c0 + 1) * b, W), 0)
-    # hidden background behind depth edges: a block whose 3x3 neighbourhood reaches
-    # nearer than its own farthest content by more than a jump may hold far-side edge
-    # pixels; the fill reaches A (d_near - d_far) from them
-    from scipy import ndimage
-
-    near = ndimage.maximum_filter(hi, size=3, mode="nearest")
+    # hidden background behind depth edges: the fill reaches A (d_near - d_far) from
+    # each 4-neighbour jump larger than ``jump`` (the layer builder's edges), so the
+    # planes of a block holding such a jump may grow by that much (a smooth gradient,
+    # however steep across a block, has no jump and grows nothing)
     # (growth past the frame is clipped anyway)
-    reach = np.where(near - lo > jump, np.minimum(A * (near - lo), 2.0 * max(H, W)), 0.0)
+    reach = np.minimum(A * _block_jumps(D, jump, b), 2.0 * max(H, W))
     grow = np.zeros(n)
     top = float(reach.max()) if reach.size else 0.0
     level = 1.0
@@ -263,9 +281,33 @@ def _plane_boxes(D: np.ndarray, planes: np.ndarray, A: float, jump: float,
     from mpib_validate.layers.mpi import TILED_FILL_MAX
 
     box = h.astype(np.float64) * w
-    area = _plane_tile_area(D, planes)
+    area = _plane_tile_area(D, planes, slab)
     stored = np.where((g == 0) & (area <= TILED_FILL_MAX * box), area, box)
     return h, w, stored
+
+
+def _block_jumps(D: np.ndarray, jump: float, b: int) -> np.ndarray:
+    """Largest 4-neighbour disparity jump above ``jump`` touching each ``b x b`` block
+    (the grid of :func:`_blocks`; 0 where none), one image row band at a time."""
+    H, W = D.shape
+    ny, nx = -(-H // b), -(-W // b)
+    out = np.zeros((ny, nx))
+    for by in range(ny):
+        r0, r1 = by * b, min(H, by * b + b)
+        band = D[max(r0 - 1, 0):min(r1 + 1, H)]  # with the rows above and below
+        top = r0 - max(r0 - 1, 0)
+        mag = np.zeros((band.shape[0], nx * b))
+        dx = np.abs(np.diff(band, axis=1))
+        dx = np.where(dx > jump, dx, 0.0)
+        mag[:, :W - 1] = dx
+        mag[:, 1:W] = np.maximum(mag[:, 1:W], dx)
+        dy = np.abs(np.diff(band, axis=0))
+        dy = np.where(dy > jump, dy, 0.0)
+        mag[:-1, :W] = np.maximum(mag[:-1, :W], dy)
+        mag[1:, :W] = np.maximum(mag[1:, :W], dy)
+        own = mag[top:top + r1 - r0]
+        out[by] = own.reshape(r1 - r0, nx, b).max(axis=(0, 2))
+    return out
 
 
 def _edge_fraction(D: np.ndarray, jump: float) -> float:
@@ -379,7 +421,9 @@ def refocus_estimate(disparity: np.ndarray, blur_parameter: float, focus_dispari
     else:
         n_planes = len(planes)
         rho = A * (planes - focus_disparity)
-        hs, ws, tiled = _plane_boxes(D, planes, A, p.passes.jump_px / A, tiles=True)
+        slab = p.passes.slab_px / A if p.passes.split == "additive" else None
+        hs, ws, tiled = _plane_boxes(D, planes, A, p.passes.jump_px / A, tiles=True,
+                                     slab=slab)
         layers = int(16 * np.sum(np.minimum(hs.astype(np.float64) * ws, tiled))
                      ) + PLANE_BYTES * n_planes
     blur = kern = 0

@@ -539,8 +539,9 @@ def _share_parts(split: str, d, alpha, planes, snap):
 
 class _Source:
     """One sheet's pixels as flat arrays (views of the sheet where possible): straight
-    colour ``(n, K)`` float64, alpha and disparity ``(n,)`` float64, and the map from a
-    flat source index to canvas ``(row, column)``."""
+    colour ``(n, K)`` (float32 kept as it is: it is multiplied in float64, exactly as
+    its float64 copy would be), alpha and disparity ``(n,)`` float64, and the map from
+    a flat source index to canvas ``(row, column)``."""
 
     def __init__(self, sheet, canvas_width: int):
         if isinstance(sheet, Sheet):
@@ -551,12 +552,12 @@ class _Source:
             self.alpha = alpha.reshape(-1)
             self.disparity = np.broadcast_to(np.asarray(sheet.disparity, np.float64),
                                              alpha.shape).reshape(-1)
-            colour = np.asarray(sheet.colour, np.float64)
+            colour = _float_colour(sheet.colour)
         else:
             self.index = np.asarray(sheet.index, np.int64)
             self.alpha = np.asarray(sheet.alpha, np.float64).reshape(-1)
             self.disparity = np.asarray(sheet.disparity, np.float64).reshape(-1)
-            colour = np.asarray(sheet.colour, np.float64)
+            colour = _float_colour(sheet.colour)
         self.colour = colour.reshape(-1, colour.shape[-1])
         self.canvas_width = canvas_width
 
@@ -566,6 +567,11 @@ class _Source:
             return np.divmod(self.index[src], self.canvas_width)
         r, c = np.divmod(src, self.w)
         return r + self.origin[0], c + self.origin[1]
+
+
+def _float_colour(colour) -> np.ndarray:
+    c = np.asarray(colour)
+    return c if c.dtype in (np.float32, np.float64) else c.astype(np.float64)
 
 
 def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
@@ -600,12 +606,10 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
         elif src.colour.shape[1] != K:
             raise ValueError("all sheets must have the same colour channels")
         sources.append(src)
-        keep = np.flatnonzero(src.alpha > 0)
         idx_dtype = np.int32 if src.alpha.size < (1 << 31) else np.int64
         parts = None
-        used = np.zeros(0, idx_dtype)
-        for k0 in range(0, max(keep.size, 1), SPLIT_CHUNK_PX):
-            kc = keep[k0:k0 + SPLIT_CHUNK_PX]
+        for k0 in range(0, max(src.alpha.size, 1), SPLIT_CHUNK_PX):
+            kc = np.flatnonzero(src.alpha[k0:k0 + SPLIT_CHUNK_PX] > 0) + k0
             got = _share_parts(split, src.disparity[kc], src.alpha[kc], planes, snap)
             if parts is None:
                 parts = [([], [], [], role, cover) for _, _, _, role, cover in got]

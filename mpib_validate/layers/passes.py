@@ -469,7 +469,11 @@ def sheets_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
             sheets_near.append(Pixels(bi, near_c, a, near_d))
             info.edge_fraction = float(bi.size / D.size)
     shown = visible & ~corner if band.any() else visible
-    sheets = sheets_far + [Sheet((0, 0), rgb, shown.astype(np.float64), D)] + sheets_near
+    # the visible sheet reads the caller's float32 colour when it has one (the same
+    # values as ``rgb``; 24 B per pixel less while the layers are cut)
+    given = colour if isinstance(colour, np.ndarray) else None
+    vis = given if given is not None and given.dtype == np.float32 else rgb
+    sheets = sheets_far + [Sheet((0, 0), vis, shown.astype(np.float64), D)] + sheets_near
     step_done(0.6)
     info.fill_fraction = float(region.mean())
     info.seconds = time.perf_counter() - t0
