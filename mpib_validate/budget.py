@@ -42,16 +42,29 @@ GIB = float(1 << 30)
 #: Default limit: this fraction of the machine's memory (or of the cgroup's limit).
 DEFAULT_FRACTION = 0.5
 
-#: Bytes per pixel of the layer builder's working set (depth edges, the fill's
-#: push-pull pyramid in float64, the sheets and their two plane shares), and the extra
-#: per pixel on a depth edge (its unmixing and its share of the fill). Measured with
-#: tracemalloc at 512x512: 241 B/px on flat depth, 545 B/px on random depth (99 % edge
-#: pixels).
-BUILD_BYTES_PER_PX = 250
-BUILD_BYTES_PER_EDGE_PX = 300
+#: Bytes per pixel of the layer builder, in its two phases (peak resident memory above
+#: the inputs, fresh processes at 512^2 to 1500x1000, 2 cores). Finding the edges and
+#: filling behind them (the push-pull pyramid in float64, the unmixing): 268 B/px where
+#: the depth has jumps (cards, a tilted floor), plus 150 B/px per edge pixel (random
+#: depth, 99 % edge pixels: 405 to 470 B/px); 50 B/px for a smooth depth with no jump
+#: (no fill). Cutting the sheets into planes, beside the layers it makes: the sheets
+#: and each pixel's shares (a 4-byte index and an 8-byte alpha, about two per pixel),
+#: 120 B/px with jumps plus 100 B/px per edge pixel (random: 212 to 264 B/px), 40 B/px
+#: without.
+BUILD_BYTES_PER_PX = 270
+BUILD_BYTES_PER_EDGE_PX = 150
+BUILD_SMOOTH_BYTES_PER_PX = 50
+CUT_BYTES_PER_PX = 120
+CUT_BYTES_PER_EDGE_PX = 100
+CUT_SMOOTH_BYTES_PER_PX = 40
 #: Bytes per padded pixel of one layer's FFT blur (float32 input, float64 copy, the
 #: half spectrum of four channels, its inverse and the output). Measured.
 FFT_BYTES_PER_PX = 128
+#: Working set of blurring a layer stored as tiles: the compositor blurs its windows in
+#: batches of :data:`mpib_validate.compositor.kernels.BATCH_BYTES` of float64 (the
+#: float32 windows, their float64 copy, spectrum, inverse and float32 result: about
+#: four times that), whatever the layer's box.
+TILED_BLUR_BYTES = 4 * (32 << 20)
 #: Bytes per pixel of writing the result (premultiplied copy, EXR channels, sRGB PNG).
 WRITE_BYTES_PER_PX = 110
 #: Bytes per pixel of the inputs kept during the work (colour float32, depth and
@@ -204,7 +217,7 @@ def _presence_extent(s_lo: np.ndarray, s_hi: np.ndarray, n: int, axis: int):
 
 
 def _plane_tile_area(D: np.ndarray, planes: np.ndarray, slab: float | None = None
-                     ) -> np.ndarray:
+                     ) -> tuple[np.ndarray, np.ndarray]:
     """Pixels of the canvas-aligned storage tiles (:data:`mpi.TILE_PX`) that may hold
     each plane: a tile holds plane ``k`` when its disparity range reaches the interval
     around ``d_k`` (every pixel is shared by the two planes around its disparity).
@@ -212,7 +225,9 @@ def _plane_tile_area(D: np.ndarray, planes: np.ndarray, slab: float | None = Non
     ``slab`` (disparity; the additive split's ``slab_px / A``): the plane's share of
     the interval below it and of the one above it are two layers, each with its own
     tiles, where the two intervals fall in different slabs
-    (:func:`mpi._slab_of_groups`); the plane then stores the tiles of each interval."""
+    (:func:`mpi._slab_of_groups`); the plane then stores the tiles of each interval.
+
+    Returns the tile pixels per plane and the number of layers on it (1 or 2)."""
     from mpib_validate.layers.mpi import TILE_PX as T, _slab_of_groups
 
     H, W = D.shape
@@ -224,8 +239,9 @@ def _plane_tile_area(D: np.ndarray, planes: np.ndarray, slab: float | None = Non
     s_hi = np.clip(np.searchsorted(planes, hi, side="right"), 0, n - 1)
     diff = np.bincount(s_lo, minlength=n + 1) - np.bincount(s_hi + 1, minlength=n + 1)
     union = np.cumsum(diff[:n]).astype(np.float64) * T * T
+    count = np.ones(n, np.int64)
     if slab is None or n < 2:
-        return union
+        return union, count
     # tiles reaching each interval (d_k, d_k+1), k < n - 1
     i_lo = np.clip(np.searchsorted(planes, lo, side="right") - 1, 0, n - 2)
     i_hi = np.clip(np.searchsorted(planes, hi, side="left") - 1, 0, n - 2)
@@ -237,7 +253,8 @@ def _plane_tile_area(D: np.ndarray, planes: np.ndarray, slab: float | None = Non
     for k in range(1, n - 1):  # plane k between interval k - 1 (below) and k (above)
         if slab_of[2 * k - 1] != slab_of[2 * k + 1]:
             out[k] = per[k - 1] + per[k]
-    return out
+            count[k] = 2
+    return out, count
 
 
 def _plane_boxes(D: np.ndarray, planes: np.ndarray, A: float, jump: float,
@@ -281,8 +298,19 @@ def _plane_boxes(D: np.ndarray, planes: np.ndarray, A: float, jump: float,
     from mpib_validate.layers.mpi import TILED_FILL_MAX
 
     box = h.astype(np.float64) * w
-    area = _plane_tile_area(D, planes, slab)
-    stored = np.where((g == 0) & (area <= TILED_FILL_MAX * box), area, box)
+    area, count = _plane_tile_area(D, planes, slab)
+    # the fill behind the jumps of a block lands on that block's planes, within its
+    # reach: the block grown by it on every side
+    sel = reach > 0
+    fill = np.zeros(n)
+    if sel.any():
+        wt = np.minimum((b + 2.0 * reach[sel]) ** 2, float(H) * W)
+        diff = (np.bincount(s_lo[sel], weights=wt, minlength=n + 1)
+                - np.bincount(s_hi[sel] + 1, weights=wt, minlength=n + 1))
+        fill = np.cumsum(diff[:n])
+    # (a plane's two layers, where slabs split it, each take the box: an upper bound)
+    held = area + fill
+    stored = np.where(held <= TILED_FILL_MAX * box * count, held, box * count)
     return h, w, stored
 
 
@@ -417,6 +445,7 @@ def refocus_estimate(disparity: np.ndarray, blur_parameter: float, focus_dispari
         n_planes = planes
         rho = np.array([largest])
         hs, ws = np.array([H]), np.array([W])
+        as_tiles = np.array([False])
         layers = PLANE_BYTES * n_planes + 16 * px
     else:
         n_planes = len(planes)
@@ -424,29 +453,37 @@ def refocus_estimate(disparity: np.ndarray, blur_parameter: float, focus_dispari
         slab = p.passes.slab_px / A if p.passes.split == "additive" else None
         hs, ws, tiled = _plane_boxes(D, planes, A, p.passes.jump_px / A, tiles=True,
                                      slab=slab)
-        layers = int(16 * np.sum(np.minimum(hs.astype(np.float64) * ws, tiled))
+        layers = int(16 * np.sum(tiled)
                      ) + PLANE_BYTES * n_planes
+        as_tiles = tiled < hs.astype(np.float64) * ws
     blur = kern = 0
     kernels_total = 0
-    for h, w, r in zip(hs, ws, rho):
+    for h, w, r, t in zip(hs, ws, rho, as_tiles):
         if h == 0:
             continue
         work, kb = _blur_bytes(int(h), int(w), float(r), H, W, p.composite)
+        if t and p.composite.tiles and p.composite.crop:
+            work = min(work, TILED_BLUR_BYTES)
         blur = max(blur, work)
         kern = max(kern, kb)
         kernels_total += kb
     acc = 32 * px if p.subapertures == 1 else 64 * px
+    edge = _edge_fraction(D, p.passes.jump_px / A)
+    if edge > 0:  # jumps: the hidden background is filled
+        edges_phase = (BUILD_BYTES_PER_PX + BUILD_BYTES_PER_EDGE_PX * edge) * px
+        cut = (CUT_BYTES_PER_PX + CUT_BYTES_PER_EDGE_PX * edge) * px
+    else:
+        edges_phase, cut = BUILD_SMOOTH_BYTES_PER_PX * px, CUT_SMOOTH_BYTES_PER_PX * px
     parts = {
         "inputs": (INPUT_BYTES_PER_PX + (16 if background else 0)) * px,
         "layers": layers,
-        "layer building": int((BUILD_BYTES_PER_PX + BUILD_BYTES_PER_EDGE_PX
-                               * _edge_fraction(D, p.passes.jump_px / A)) * px),
+        "layer building": int(max(edges_phase, cut)),
         "blur of one layer": blur + kern,
         "kernel cache": min(KERNEL_CACHE_BYTES, kernels_total),
         "accumulators": acc,
         "writing": WRITE_BYTES_PER_PX * px,
     }
-    phases = (parts["layer building"] + layers,
+    phases = (edges_phase, cut + layers,
               layers + parts["blur of one layer"] + parts["kernel cache"] + acc,
               parts["writing"] + 16 * px)
     return Estimate(f"refocusing {W}x{H} ({preset})", parts, planes=int(n_planes),
