@@ -14,7 +14,7 @@ Refocusing (:func:`refocus_estimate`) follows what ``passes.layers_from_passes``
   ``2 tol / A`` (so the count grows with ``A`` times the disparity range: a colour
   file read as depth, ``d = 1/Z`` up to 1/min(colour), gives thousands);
 - layers: each plane stores premultiplied RGBA float32 (16 B) over the bounding box
-  of its content, or over its occupied 64 px tiles where those cover at most
+  of its content, or over its occupied 32 px tiles where those cover at most
   ``TILED_FILL_MAX`` of the box (a thin band of a smooth depth). Every pixel is shared
   by the two planes around its disparity; the boxes are taken on blocks of at most 256 x 256 per image and grown by the occlusion
   reach ``A (d_near - d_far)`` of the depth edges in them (the hidden-background fill);
