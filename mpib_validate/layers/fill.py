@@ -37,12 +37,14 @@ def disparity_jumps(disparity: np.ndarray, threshold: float):
         a[axis], b[axis] = slice(None, -1), slice(1, None)
         a, b = tuple(a), tuple(b)
         da, db = D[a], D[b]
-        jump_ab = da - db > threshold  # a nearer than b
-        jump_ba = db - da > threshold
-        far[a] = np.where(jump_ab, np.minimum(far[a], db), far[a])
-        far[b] = np.where(jump_ba, np.minimum(far[b], da), far[b])
-        near[b] = np.where(jump_ab, np.maximum(near[b], da), near[b])
-        near[a] = np.where(jump_ba, np.maximum(near[a], db), near[a])
+        diff = da - db
+        jump_ab = diff > threshold  # a nearer than b
+        jump_ba = np.negative(diff, out=diff) > threshold  # db - da, exactly
+        # in place where the jump is (the views far[a], ... are written through)
+        np.minimum(far[a], db, out=far[a], where=jump_ab)
+        np.minimum(far[b], da, out=far[b], where=jump_ba)
+        np.maximum(near[b], da, out=near[b], where=jump_ab)
+        np.maximum(near[a], db, out=near[a], where=jump_ba)
     return np.isfinite(far), far, near
 
 
@@ -59,8 +61,7 @@ def nearer_diagonal(disparity: np.ndarray, threshold: float) -> np.ndarray:
         xd = slice(max(-dx, 0), W + min(-dx, 0))
         nb = D[ys, xs]  # the neighbour at (y + dy, x + dx) of pixel (y, x) = D[yd, xd]
         own = D[yd, xd]
-        near[yd, xd] = np.where(nb - own > threshold, np.maximum(near[yd, xd], nb),
-                                near[yd, xd])
+        np.maximum(near[yd, xd], nb, out=near[yd, xd], where=nb - own > threshold)
     return near
 
 
