@@ -16,11 +16,15 @@ Refocusing (:func:`refocus_estimate`) follows what ``passes.layers_from_passes``
 - layers: each plane stores premultiplied RGBA float32 (16 B) over the bounding box
   of its content, or over its occupied 32 px tiles where those cover at most
   ``TILED_FILL_MAX`` of the box (a thin band of a smooth depth). Every pixel is shared
-  by the two planes around its disparity; the boxes are taken on blocks of at most 256 x 256 per image and grown by the occlusion
-  reach ``A (d_near - d_far)`` of the depth edges in them (the hidden-background fill);
+  by the two planes around its disparity, and with additive slabs a plane whose two
+  intervals fall in different slabs holds two layers. The boxes are taken on blocks of
+  at most 256 x 256 per image and grown by the occlusion reach ``A (d_near - d_far)``
+  of the 4-neighbour depth jumps in them (the hidden-background fill, which adds the
+  block grown by its reach to a tiled plane);
 - compositing: one layer at a time, padded by its kernel radius
-  ``R = ceil(A |d - d_f|) + 1`` and blurred by a float64 FFT of its four channels,
-  plus the kernel, the accumulator and the kernel cache;
+  ``R = ceil(A |d - d_f|) + 1`` and blurred by a float64 FFT of its four channels (a
+  tiled layer: in batches of windows, :data:`TILED_BLUR_BYTES`), plus the kernel, the
+  accumulators and the kernel cache;
 - the per-pixel working sets of the layer builder and of the output writers.
 
 The byte counts per pixel are measured (``tests/test_budget.py`` checks the estimate
