@@ -14,14 +14,18 @@ Refocusing (:func:`refocus_estimate`) follows what ``passes.layers_from_passes``
   ``2 tol / A`` (so the count grows with ``A`` times the disparity range: a colour
   file read as depth, ``d = 1/Z`` up to 1/min(colour), gives thousands);
 - layers: each plane stores premultiplied RGBA float32 (16 B) over the bounding box
-  of its content, or over its occupied 64 px tiles where those cover at most
+  of its content, or over its occupied 32 px tiles where those cover at most
   ``TILED_FILL_MAX`` of the box (a thin band of a smooth depth). Every pixel is shared
-  by the two planes around its disparity; the boxes are taken on blocks of at most 256 x 256 per image and grown by the occlusion
-  reach ``A (d_near - d_far)`` of the depth edges in them (the hidden-background fill);
+  by the two planes around its disparity, and with additive slabs a plane whose two
+  intervals fall in different slabs holds two layers. The boxes are taken on blocks of
+  at most 256 x 256 per image and grown by the occlusion reach ``A (d_near - d_far)``
+  of the 4-neighbour depth jumps in them (the hidden-background fill, which adds the
+  block grown by its reach to a tiled plane);
 - compositing: one layer at a time, padded by its kernel radius
-  ``R = ceil(A |d - d_f|) + 1`` and blurred by a float32 FFT of its four channels,
-  with up to two blurred outputs held ahead (the compositor's worker thread), plus the
-  kernel, the accumulator and the kernel cache;
+  ``R = ceil(A |d - d_f|) + 1`` and blurred by a float32 FFT of its four channels (a
+  tiled layer: in batches of windows, :data:`TILED_BLUR_BYTES`), with up to two blurred
+  outputs held ahead (the compositor's worker thread), plus the kernel, the
+  accumulators and the kernel cache;
 - the per-pixel working sets of the layer builder and of the output writers.
 
 The byte counts per pixel are measured (``tests/test_budget.py`` checks the estimate
@@ -43,19 +47,32 @@ GIB = float(1 << 30)
 #: Default limit: this fraction of the machine's memory (or of the cgroup's limit).
 DEFAULT_FRACTION = 0.5
 
-#: Bytes per pixel of the layer builder's working set (depth edges, the fill's
-#: push-pull pyramid in float64, the sheets and their two plane shares), and the extra
-#: per pixel on a depth edge (its unmixing and its share of the fill). Measured with
-#: tracemalloc at 512x512: 241 B/px on flat depth, 545 B/px on random depth (99 % edge
-#: pixels).
-BUILD_BYTES_PER_PX = 250
-BUILD_BYTES_PER_EDGE_PX = 300
+#: Bytes per pixel of the layer builder, in its two phases (peak resident memory above
+#: the inputs, fresh processes at 512^2 to 1500x1000, 2 cores). Finding the edges and
+#: filling behind them (the push-pull pyramid in float64, the unmixing): 268 B/px where
+#: the depth has jumps (cards, a tilted floor), plus 150 B/px per edge pixel (random
+#: depth, 99 % edge pixels: 405 to 470 B/px); 50 B/px for a smooth depth with no jump
+#: (no fill). Cutting the sheets into planes, beside the layers it makes: the sheets
+#: and each pixel's shares (a 4-byte index and an 8-byte alpha, about two per pixel),
+#: 120 B/px with jumps plus 100 B/px per edge pixel (random: 212 to 264 B/px), 40 B/px
+#: without.
+BUILD_BYTES_PER_PX = 270
+BUILD_BYTES_PER_EDGE_PX = 150
+BUILD_SMOOTH_BYTES_PER_PX = 50
+CUT_BYTES_PER_PX = 120
+CUT_BYTES_PER_EDGE_PX = 100
+CUT_SMOOTH_BYTES_PER_PX = 40
 #: Bytes per padded pixel of one layer's FFT blur (float32 input, the complex64 half
 #: spectrum of four channels, its float32 inverse and the output: 4 x 16 B).
 FFT_BYTES_PER_PX = 64
 #: Blurred outputs (16 B/px) held besides the one being computed: the compositor's
 #: worker thread runs up to ``composite.PREFETCH_PARTS`` parts ahead.
 HELD_OUTPUTS = 2
+#: Working set of blurring a layer stored as tiles: the compositor blurs its windows in
+#: batches of :data:`mpib_validate.compositor.kernels.BATCH_BYTES` of float32 windows
+#: (the windows at the transform's size, spectrum, inverse and result: about four times
+#: that), plus the batches held ahead, whatever the layer's box.
+TILED_BLUR_BYTES = (4 + HELD_OUTPUTS) * (32 << 20)
 #: Bytes per pixel of writing the result (premultiplied copy, EXR channels, sRGB PNG).
 WRITE_BYTES_PER_PX = 110
 #: Bytes per pixel of the inputs kept during the work (colour float32, depth and
@@ -207,11 +224,19 @@ def _presence_extent(s_lo: np.ndarray, s_hi: np.ndarray, n: int, axis: int):
     return first, last
 
 
-def _plane_tile_area(D: np.ndarray, planes: np.ndarray) -> np.ndarray:
+def _plane_tile_area(D: np.ndarray, planes: np.ndarray, slab: float | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
     """Pixels of the canvas-aligned storage tiles (:data:`mpi.TILE_PX`) that may hold
     each plane: a tile holds plane ``k`` when its disparity range reaches the interval
-    around ``d_k`` (every pixel is shared by the two planes around its disparity)."""
-    from mpib_validate.layers.mpi import TILE_PX as T
+    around ``d_k`` (every pixel is shared by the two planes around its disparity).
+
+    ``slab`` (disparity; the additive split's ``slab_px / A``): the plane's share of
+    the interval below it and of the one above it are two layers, each with its own
+    tiles, where the two intervals fall in different slabs
+    (:func:`mpi._slab_of_groups`); the plane then stores the tiles of each interval.
+
+    Returns the tile pixels per plane and the number of layers on it (1 or 2)."""
+    from mpib_validate.layers.mpi import TILE_PX as T, _slab_of_groups
 
     H, W = D.shape
     n = len(planes)
@@ -221,11 +246,27 @@ def _plane_tile_area(D: np.ndarray, planes: np.ndarray) -> np.ndarray:
     s_lo = np.clip(np.searchsorted(planes, lo, side="right") - 1, 0, n - 1)
     s_hi = np.clip(np.searchsorted(planes, hi, side="right"), 0, n - 1)
     diff = np.bincount(s_lo, minlength=n + 1) - np.bincount(s_hi + 1, minlength=n + 1)
-    return np.cumsum(diff[:n]).astype(np.float64) * T * T
+    union = np.cumsum(diff[:n]).astype(np.float64) * T * T
+    count = np.ones(n, np.int64)
+    if slab is None or n < 2:
+        return union, count
+    # tiles reaching each interval (d_k, d_k+1), k < n - 1
+    i_lo = np.clip(np.searchsorted(planes, lo, side="right") - 1, 0, n - 2)
+    i_hi = np.clip(np.searchsorted(planes, hi, side="left") - 1, 0, n - 2)
+    i_hi = np.maximum(i_hi, i_lo)
+    diff = np.bincount(i_lo, minlength=n) - np.bincount(i_hi + 1, minlength=n)
+    per = np.cumsum(diff[:n - 1]).astype(np.float64) * T * T
+    slab_of = _slab_of_groups(planes, slab)
+    out = union.copy()
+    for k in range(1, n - 1):  # plane k between interval k - 1 (below) and k (above)
+        if slab_of[2 * k - 1] != slab_of[2 * k + 1]:
+            out[k] = per[k - 1] + per[k]
+            count[k] = 2
+    return out, count
 
 
 def _plane_boxes(D: np.ndarray, planes: np.ndarray, A: float, jump: float,
-                 tiles: bool = False):
+                 tiles: bool = False, slab: float | None = None):
     """Estimated ``(height, width)`` of each plane's content box (see the module
     docstring); with ``tiles``, also the pixels each plane stores: its tile area
     (:func:`_plane_tile_area`) where a layer is kept as tiles
@@ -241,14 +282,12 @@ def _plane_boxes(D: np.ndarray, planes: np.ndarray, A: float, jump: float,
     c0, c1 = _presence_extent(s_lo, s_hi, n, 1)
     h = np.where(r1 >= r0, np.minimum((r1 - r0 + 1) * b, H), 0)
     w = np.where(c1 >= c0, np.minimum((c1 - c0 + 1) * b, W), 0)
-    # hidden background behind depth edges: a block whose 3x3 neighbourhood reaches
-    # nearer than its own farthest content by more than a jump may hold far-side edge
-    # pixels; the fill reaches A (d_near - d_far) from them
-    from scipy import ndimage
-
-    near = ndimage.maximum_filter(hi, size=3, mode="nearest")
+    # hidden background behind depth edges: the fill reaches A (d_near - d_far) from
+    # each 4-neighbour jump larger than ``jump`` (the layer builder's edges), so the
+    # planes of a block holding such a jump may grow by that much (a smooth gradient,
+    # however steep across a block, has no jump and grows nothing)
     # (growth past the frame is clipped anyway)
-    reach = np.where(near - lo > jump, np.minimum(A * (near - lo), 2.0 * max(H, W)), 0.0)
+    reach = np.minimum(A * _block_jumps(D, jump, b), 2.0 * max(H, W))
     grow = np.zeros(n)
     top = float(reach.max()) if reach.size else 0.0
     level = 1.0
@@ -267,9 +306,44 @@ def _plane_boxes(D: np.ndarray, planes: np.ndarray, A: float, jump: float,
     from mpib_validate.layers.mpi import TILED_FILL_MAX
 
     box = h.astype(np.float64) * w
-    area = _plane_tile_area(D, planes)
-    stored = np.where((g == 0) & (area <= TILED_FILL_MAX * box), area, box)
+    area, count = _plane_tile_area(D, planes, slab)
+    # the fill behind the jumps of a block lands on that block's planes, within its
+    # reach: the block grown by it on every side
+    sel = reach > 0
+    fill = np.zeros(n)
+    if sel.any():
+        wt = np.minimum((b + 2.0 * reach[sel]) ** 2, float(H) * W)
+        diff = (np.bincount(s_lo[sel], weights=wt, minlength=n + 1)
+                - np.bincount(s_hi[sel] + 1, weights=wt, minlength=n + 1))
+        fill = np.cumsum(diff[:n])
+    # (a plane's two layers, where slabs split it, each take the box: an upper bound)
+    held = area + fill
+    stored = np.where(held <= TILED_FILL_MAX * box * count, held, box * count)
     return h, w, stored
+
+
+def _block_jumps(D: np.ndarray, jump: float, b: int) -> np.ndarray:
+    """Largest 4-neighbour disparity jump above ``jump`` touching each ``b x b`` block
+    (the grid of :func:`_blocks`; 0 where none), one image row band at a time."""
+    H, W = D.shape
+    ny, nx = -(-H // b), -(-W // b)
+    out = np.zeros((ny, nx))
+    for by in range(ny):
+        r0, r1 = by * b, min(H, by * b + b)
+        band = D[max(r0 - 1, 0):min(r1 + 1, H)]  # with the rows above and below
+        top = r0 - max(r0 - 1, 0)
+        mag = np.zeros((band.shape[0], nx * b))
+        dx = np.abs(np.diff(band, axis=1))
+        dx = np.where(dx > jump, dx, 0.0)
+        mag[:, :W - 1] = dx
+        mag[:, 1:W] = np.maximum(mag[:, 1:W], dx)
+        dy = np.abs(np.diff(band, axis=0))
+        dy = np.where(dy > jump, dy, 0.0)
+        mag[:-1, :W] = np.maximum(mag[:-1, :W], dy)
+        mag[1:, :W] = np.maximum(mag[1:, :W], dy)
+        own = mag[top:top + r1 - r0]
+        out[by] = own.reshape(r1 - r0, nx, b).max(axis=(0, 2))
+    return out
 
 
 def _edge_fraction(D: np.ndarray, jump: float) -> float:
@@ -380,36 +454,47 @@ def refocus_estimate(disparity: np.ndarray, blur_parameter: float, focus_dispari
         n_planes = planes
         rho = np.array([largest])
         hs, ws = np.array([H]), np.array([W])
+        as_tiles = np.array([False])
         layers = PLANE_BYTES * n_planes + 16 * px
     else:
         n_planes = len(planes)
         rho = A * (planes - focus_disparity)
-        hs, ws, tiled = _plane_boxes(D, planes, A, p.passes.jump_px / A, tiles=True)
-        layers = int(16 * np.sum(np.minimum(hs.astype(np.float64) * ws, tiled))
+        slab = p.passes.slab_px / A if p.passes.split == "additive" else None
+        hs, ws, tiled = _plane_boxes(D, planes, A, p.passes.jump_px / A, tiles=True,
+                                     slab=slab)
+        layers = int(16 * np.sum(tiled)
                      ) + PLANE_BYTES * n_planes
+        as_tiles = tiled < hs.astype(np.float64) * ws
     blur = kern = 0
     kernels_total = 0
-    for h, w, r in zip(hs, ws, rho):
+    for h, w, r, t in zip(hs, ws, rho, as_tiles):
         if h == 0:
             continue
         work, kb = _blur_bytes(int(h), int(w), float(r), H, W, p.composite)
+        if t and p.composite.tiles and p.composite.crop:
+            work = min(work, TILED_BLUR_BYTES)
         blur = max(blur, work)
         kern = max(kern, kb)
         kernels_total += kb
     acc = 32 * px if p.subapertures == 1 else 64 * px
     if p.composite.chain_px is not None:  # the chain's own sum (composite._Chain)
         acc += 16 * px
+    edge = _edge_fraction(D, p.passes.jump_px / A)
+    if edge > 0:  # jumps: the hidden background is filled
+        edges_phase = (BUILD_BYTES_PER_PX + BUILD_BYTES_PER_EDGE_PX * edge) * px
+        cut = (CUT_BYTES_PER_PX + CUT_BYTES_PER_EDGE_PX * edge) * px
+    else:
+        edges_phase, cut = BUILD_SMOOTH_BYTES_PER_PX * px, CUT_SMOOTH_BYTES_PER_PX * px
     parts = {
         "inputs": (INPUT_BYTES_PER_PX + (16 if background else 0)) * px,
         "layers": layers,
-        "layer building": int((BUILD_BYTES_PER_PX + BUILD_BYTES_PER_EDGE_PX
-                               * _edge_fraction(D, p.passes.jump_px / A)) * px),
+        "layer building": int(max(edges_phase, cut)),
         "blur of one layer": blur + kern,
         "kernel cache": min(KERNEL_CACHE_BYTES, kernels_total),
         "accumulators": acc,
         "writing": WRITE_BYTES_PER_PX * px,
     }
-    phases = (parts["layer building"] + layers,
+    phases = (edges_phase, cut + layers,
               layers + parts["blur of one layer"] + parts["kernel cache"] + acc,
               parts["writing"] + 16 * px)
     return Estimate(f"refocusing {W}x{H} ({preset})", parts, planes=int(n_planes),

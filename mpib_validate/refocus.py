@@ -349,7 +349,7 @@ class BuiltMPI:
 
     mpi: object
     opaque: bool
-    disparity: np.ndarray
+    disparity: np.ndarray  # its smallest and largest value (or any array with them)
     info: object
     blur_parameter: float
     #: the input's pixel model (:data:`PIXEL_MODELS`): which kernel Eq. 1 uses
@@ -395,7 +395,10 @@ def build_mpi(passes: Passes, blur_parameter: float, preset: str = "default",
             [passes.colour, np.clip(film, 0.0, 1.0)[..., None]], axis=-1)
         mpi, info = layers_from_passes(colour, D, blur_parameter, p.passes,
                                        background=background, progress=progress)
-    return BuiltMPI(mpi, opaque, D, info, float(blur_parameter), passes.pixel_model)
+    # only the range is read (the largest blur radius), as a cached entry keeps it: the
+    # full map would hold 8 B per pixel through the compositing
+    return BuiltMPI(mpi, opaque, np.array([float(D.min()), float(D.max())]), info,
+                    float(blur_parameter), passes.pixel_model)
 
 
 def render_built(built: BuiltMPI, blur_parameter: float, focus_disparity: float,

@@ -1,7 +1,7 @@
 """Tiled layers and tiled compositing: the same result as the dense, untiled path.
 
 A smooth predicted-like disparity (mpib_validate.bench.photo) cuts into planes that are
-thin bands across the frame: their layers are stored as 64 px tiles, and the compositor
+thin bands across the frame: their layers are stored as 32 px tiles, and the compositor
 blurs only the output tiles whose window holds content. Both must give the untiled,
 dense result up to float32 rounding.
 """

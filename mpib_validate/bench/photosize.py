@@ -96,6 +96,7 @@ def time_refocus(width: int, height: int, preset: str, seed: int = 0) -> dict:
     passes = R.Passes(colour, depth, "generated", "generated", None, None)
     D = R.depth_to_disparity(depth)
     est = refocus_estimate(D, A, d_f, preset)
+    del D  # not needed while refocusing (build_mpi makes its own)
     if est.bytes > memory_limit():  # as `mpib refocus` would refuse it
         return {"size": f"{width}x{height}", "preset": preset, "planes": est.planes,
                 "estimate_bytes": est.bytes,

@@ -37,12 +37,14 @@ def disparity_jumps(disparity: np.ndarray, threshold: float):
         a[axis], b[axis] = slice(None, -1), slice(1, None)
         a, b = tuple(a), tuple(b)
         da, db = D[a], D[b]
-        jump_ab = da - db > threshold  # a nearer than b
-        jump_ba = db - da > threshold
-        far[a] = np.where(jump_ab, np.minimum(far[a], db), far[a])
-        far[b] = np.where(jump_ba, np.minimum(far[b], da), far[b])
-        near[b] = np.where(jump_ab, np.maximum(near[b], da), near[b])
-        near[a] = np.where(jump_ba, np.maximum(near[a], db), near[a])
+        diff = da - db
+        jump_ab = diff > threshold  # a nearer than b
+        jump_ba = np.negative(diff, out=diff) > threshold  # db - da, exactly
+        # in place where the jump is (the views far[a], ... are written through)
+        np.minimum(far[a], db, out=far[a], where=jump_ab)
+        np.minimum(far[b], da, out=far[b], where=jump_ba)
+        np.maximum(near[b], da, out=near[b], where=jump_ab)
+        np.maximum(near[a], db, out=near[a], where=jump_ba)
     return np.isfinite(far), far, near
 
 
@@ -59,8 +61,7 @@ def nearer_diagonal(disparity: np.ndarray, threshold: float) -> np.ndarray:
         xd = slice(max(-dx, 0), W + min(-dx, 0))
         nb = D[ys, xs]  # the neighbour at (y + dy, x + dx) of pixel (y, x) = D[yd, xd]
         own = D[yd, xd]
-        near[yd, xd] = np.where(nb - own > threshold, np.maximum(near[yd, xd], nb),
-                                near[yd, xd])
+        np.maximum(near[yd, xd], nb, out=near[yd, xd], where=nb - own > threshold)
     return near
 
 
@@ -89,7 +90,7 @@ def occlusion_region(disparity: np.ndarray, blur_parameter: float, threshold: fl
     if not seed.any():
         return region, np.full(D.shape, np.nan)
     radius = np.where(seed, blur_parameter * (D - np.where(seed, far, D)), 0.0)
-    _, (iy, ix) = ndimage.distance_transform_edt(~seed, return_indices=True)
+    iy, ix = ndimage.distance_transform_edt(~seed, return_distances=False, return_indices=True)
     far_field = far[iy, ix]
     r = radius[seed]
     lo, hi = max(r.min(), 1.0), max(r.max(), 1.0)
@@ -99,8 +100,16 @@ def occlusion_region(disparity: np.ndarray, blur_parameter: float, threshold: fl
         bucket = seed & (radius <= edges[k + 1]) & ((radius > edges[k]) if k else True)
         if not bucket.any():
             continue
-        dist = ndimage.distance_transform_edt(~bucket)
-        region |= dist <= math.ceil(radius[bucket].max())
+        # only pixels within R of the bucket can join: the transform runs on the
+        # bucket's box grown by R (it holds every seed of the bucket, so each distance
+        # there is the full frame's)
+        R = math.ceil(radius[bucket].max())
+        rows = np.flatnonzero(bucket.any(axis=1))
+        cols = np.flatnonzero(bucket.any(axis=0))
+        y0, y1 = max(rows[0] - R, 0), min(rows[-1] + R + 1, D.shape[0])
+        x0, x1 = max(cols[0] - R, 0), min(cols[-1] + R + 1, D.shape[1])
+        dist = ndimage.distance_transform_edt(~bucket[y0:y1, x0:x1])
+        region[y0:y1, x0:x1] |= dist <= R
     region &= D > far_field + 0.5 * threshold
     return region, far_field
 
@@ -125,9 +134,12 @@ def push_pull(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
         if h <= 1 and wd <= 1:
             break
         ph, pw = h + (h % 2), wd + (wd % 2)
-        pv = np.zeros((ph, pw, v.shape[2]))
-        pwgt = np.zeros((ph, pw))
-        pv[:h, :wd], pwgt[:h, :wd] = cur_v, cur_w
+        if (ph, pw) == (h, wd):  # even: nothing to pad (zeros would add nothing)
+            pv, pwgt = cur_v, cur_w
+        else:
+            pv = np.zeros((ph, pw, v.shape[2]))
+            pwgt = np.zeros((ph, pw))
+            pv[:h, :wd], pwgt[:h, :wd] = cur_v, cur_w
         sv = _sum2x2(pv)
         sw = _sum2x2(pwgt)
         # normalised colour times clamped weight (premultiplied again)
@@ -137,8 +149,15 @@ def push_pull(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
     # push
     filled = np.divide(pyr[-1][0], pyr[-1][1][..., None], out=np.zeros_like(pyr[-1][0]),
                        where=pyr[-1][1][..., None] > 0)
-    for lv, lw in reversed(pyr[:-1]):
+    binary = bool(((w == 0) | (w == 1)).all())
+    for level, (lv, lw) in reversed(list(enumerate(pyr[:-1]))):
         up = _upsample2(filled, lw.shape)
+        if level == 0 and binary:
+            # weights 0 or 1: w own + (1 - w) up is own or up (+ 0.0, as the sum gives +0
+            # for -0), the same bits without the blend
+            filled = np.where(lw[..., None] > 0, lv, up)
+            filled += 0.0
+            continue
         own = np.divide(lv, lw[..., None], out=np.zeros_like(lv), where=lw[..., None] > 0)
         filled = lw[..., None] * own + (1.0 - lw[..., None]) * up
     return filled
@@ -155,10 +174,28 @@ def _upsample2(coarse: np.ndarray, shape) -> np.ndarray:
     coordinate (i + 0.5) / 2 - 0.5), edges clamped; separable, so two passes of
     weights 3/4 and 1/4."""
     def axis_up(a, n, ax):
-        i = np.arange(n)
-        near = np.clip(i // 2, 0, a.shape[ax] - 1)
-        other = np.clip(np.where(i % 2 == 0, i // 2 - 1, i // 2 + 1), 0, a.shape[ax] - 1)
-        return 0.75 * np.take(a, near, axis=ax) + 0.25 * np.take(a, other, axis=ax)
+        # with slices: fine index 2k is 3/4 coarse k + 1/4 coarse k - 1, fine 2k + 1 is
+        # 3/4 coarse k + 1/4 coarse k + 1 (indices clamped to the coarse range)
+        def sl(*args):
+            idx = [slice(None)] * a.ndim
+            idx[ax] = slice(*args)
+            return tuple(idx)
+
+        m = a.shape[ax]
+        ne, no = (n + 1) // 2, n // 2
+        shape_out = list(a.shape)
+        shape_out[ax] = n
+        out = np.empty(shape_out)
+        ev, od = out[sl(0, None, 2)], out[sl(1, None, 2)]
+        np.multiply(a[sl(0, ne)], 0.75, out=ev)
+        ev[sl(1, None)] += 0.25 * a[sl(0, ne - 1)]
+        ev[sl(0, 1)] += 0.25 * a[sl(0, 1)]
+        np.multiply(a[sl(0, no)], 0.75, out=od)
+        last = min(no, m - 1)  # odd fine indices whose k + 1 is a coarse index
+        od[sl(0, last)] += 0.25 * a[sl(1, last + 1)]
+        if last < no:
+            od[sl(last, None)] += 0.25 * a[sl(m - 1, m)]
+        return out
 
     return axis_up(axis_up(coarse, shape[0], 0), shape[1], 1)
 

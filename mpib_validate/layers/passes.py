@@ -122,14 +122,47 @@ class PassesInfo:
 
 def _content_intervals(values: np.ndarray, step: float) -> list[tuple[float, float]]:
     """Disparity intervals that hold content: sorted values split where a gap exceeds
-    one plane step."""
-    v = np.unique(np.round(np.asarray(values, np.float64).ravel(), 12))
+    one plane step (values rounded to 1e-12)."""
+    v = np.round(np.asarray(values, np.float64).ravel(), 12)
     if v.size == 0:
         return []
+    binned = _binned_intervals(v, step)
+    if binned is not None:
+        return binned
+    v = np.unique(v)
     breaks = np.flatnonzero(np.diff(v) > step)
     starts = np.concatenate([[0], breaks + 1])
     ends = np.concatenate([breaks, [v.size - 1]])
     return [(float(v[a]), float(v[b])) for a, b in zip(starts, ends)]
+
+
+def _binned_intervals(v: np.ndarray, step: float):
+    """:func:`_content_intervals` without a full sort: the values grouped into bins one
+    step wide (a radix sort of 16-bit bin numbers). A gap wider than a step can then only
+    lie between the largest value of one occupied bin and the smallest of the next (the
+    bins are monotone in the value), provided no bin spans more than a step itself
+    (rounding at its edges); None where that fails or does not pay (then sort)."""
+    if v.size < (1 << 16):
+        return None
+    lo, hi = float(v.min()), float(v.max())
+    if not (np.isfinite(lo) and np.isfinite(hi) and step > 0):
+        return None
+    top = (hi - lo) / step
+    if not top < 32000:
+        return None
+    b = ((v - lo) / step).astype(np.int16)
+    order = np.argsort(b, kind="stable")
+    counts = np.bincount(b, minlength=int(top) + 1)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])[counts > 0]
+    sv = v[order]
+    bmin = np.minimum.reduceat(sv, starts)
+    bmax = np.maximum.reduceat(sv, starts)
+    if (bmax - bmin > step).any():
+        return None
+    breaks = np.flatnonzero(bmin[1:] - bmax[:-1] > step)
+    first = np.concatenate([[0], breaks + 1])
+    last = np.concatenate([breaks, [bmin.size - 1]])
+    return [(float(bmin[a]), float(bmax[z])) for a, z in zip(first, last)]
 
 
 #: An edge pixel is unmixed only if ``a c_n + (1 - a) c_f`` explains its colour to within
@@ -436,7 +469,11 @@ def sheets_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
             sheets_near.append(Pixels(bi, near_c, a, near_d))
             info.edge_fraction = float(bi.size / D.size)
     shown = visible & ~corner if band.any() else visible
-    sheets = sheets_far + [Sheet((0, 0), rgb, shown.astype(np.float64), D)] + sheets_near
+    # the visible sheet reads the caller's float32 colour when it has one (the same
+    # values as ``rgb``; 24 B per pixel less while the layers are cut)
+    given = colour if isinstance(colour, np.ndarray) else None
+    vis = given if given is not None and given.dtype == np.float32 else rgb
+    sheets = sheets_far + [Sheet((0, 0), vis, shown.astype(np.float64), D)] + sheets_near
     step_done(0.6)
     info.fill_fraction = float(region.mean())
     info.seconds = time.perf_counter() - t0
