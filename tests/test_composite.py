@@ -344,3 +344,27 @@ def test_separable_bilinear_equals_map_coordinates():
     want = np.stack([ndimage.map_coordinates(a[..., c], [yy, xx], order=1, mode="nearest")
                      for c in range(4)], axis=-1)
     np.testing.assert_allclose(_bilinear_separable(a, ty, tx), want, atol=2e-7)
+
+
+def test_an_error_in_the_blur_thread_reaches_the_caller_and_no_thread_is_left():
+    """The layers are blurred on a worker thread (composite._Prefetch): an error there
+    is raised in the caller, and a caller that stops early (a cancelling progress)
+    leaves no thread behind."""
+    import threading
+
+    rng = np.random.default_rng(3)
+    mpi = _random_mpi(rng, 3, 20, 24, [0.2, 0.4, 0.6])
+    before = threading.active_count()
+    with pytest.raises(ValueError, match="kernel must be"):
+        C.composite(mpi, 20.0, 0.4, CompositeSettings(kernel="bogus"))
+
+    class Stop(Exception):
+        pass
+
+    def progress(f):
+        if f > 0:
+            raise Stop
+
+    with pytest.raises(Stop):
+        C.composite(mpi, 20.0, 0.4, FAST, progress=progress)
+    assert threading.active_count() == before

@@ -499,8 +499,6 @@ class _Prefetch:
     the consumer at its place. Leaving the ``with`` block early (an exception in the
     consumer, e.g. a cancelling ``progress``) stops the worker before returning."""
 
-    _DONE = object()
-
     def __init__(self, gen, depth: int):
         import queue
         import threading
