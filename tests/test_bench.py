@@ -77,3 +77,27 @@ def test_pareto_labels_never_overlap(tmp_path):
         for j in range(i):
             assert not boxes[i].overlaps(boxes[j]), (i, j)
     plt.close(fig)
+
+
+def _child_peaks(_):
+    import resource
+
+    from mpib_validate.bench.machine import peak_rss_mb
+
+    return peak_rss_mb(), resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def test_a_workers_peak_memory_is_its_own():
+    """getrusage's ru_maxrss survives execve, so a worker spawned by a large parent
+    reported the parent's peak (every photo-size row of a full `mpib bench` read
+    1.48 GB); peak_rss_mb reads the worker's own high-water mark. A parent holding
+    400 MB more than its worker needs: the worker's peak must stay far below it."""
+    import multiprocessing as mp
+
+    import numpy as np
+
+    big = np.ones(50_000_000)  # 400 MB, touched
+    with mp.get_context("spawn").Pool(1) as pool:
+        own, inherited = pool.apply(_child_peaks, (0,))
+    assert big.sum() == 50_000_000
+    assert own < 300, (own, inherited)  # a fresh interpreter with numpy: ~35 MB

@@ -16,7 +16,6 @@ times the whole frame.
 from __future__ import annotations
 
 import math
-import resource
 import statistics
 import time
 from pathlib import Path
@@ -24,7 +23,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from mpib_validate.bench.machine import (finish, machine_info, mean_table, peak_python_mb, run_worker, worker_main)
+from mpib_validate.bench.machine import (finish, machine_info, mean_table, peak_python_mb, peak_rss_mb, run_worker, worker_main)
 
 STRIP_ROWS = 48
 
@@ -206,7 +205,7 @@ def _hd_worker(cfg: dict) -> dict:
             total += time.perf_counter() - t0
         out["seconds"] = total * cam.height / rows
         out["measured_rows"] = rows
-    out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    out["peak_rss_mb"] = peak_rss_mb()
     return out
 
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 import statistics
 import time
 
-from mpib_validate.bench.machine import worker_main
+from mpib_validate.bench.machine import peak_rss_mb, worker_main
 
 #: Focus offsets (times d_f) visited by the timed renders, none equal to the build's.
 FOCUS_STEPS = (0.6, 1.3, 0.85, 1.6, 1.1)
@@ -31,8 +31,7 @@ def _timed(fn):
 def focus_pull_timings(cfg) -> dict:
     """``cfg``: ``input`` (EXR), ``A``, ``d_f``, ``preset``, ``repeats``. Returns the median
     wall and CPU seconds of each kind of render and their ratios to the full pipeline."""
-    import resource
-
+    
     from mpib_validate.refocus import load_passes, refocus
     from mpib_validate.session import RefocusSession
 
@@ -68,7 +67,7 @@ def focus_pull_timings(cfg) -> dict:
     return {"rows": rows, "build_seconds": build_w, "build_cpu_seconds": build_c,
             "first_preview_seconds": first_prev_w, "first_preview_cpu_seconds": first_prev_c,
             "cache_mb": session.cache_bytes / 1e6, "preset": preset,
-            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}
+            "peak_rss_mb": peak_rss_mb()}
 
 
 def markdown(result: dict) -> list[str]:

@@ -71,6 +71,25 @@ def finish(out, name: str, result: dict, markdown) -> dict:
     return result
 
 
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process image, in MB: ``VmHWM`` of
+    ``/proc/self/status``. Not ``getrusage``'s ``ru_maxrss``: that survives ``execve``,
+    so a worker started from a large parent (``subprocess``, multiprocessing's
+    ``spawn``) reports the parent's peak at the fork (all the photo-size rows of a
+    ``mpib bench`` run read 1.48 GB). Falls back to ``ru_maxrss`` where ``/proc`` is
+    absent."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
 def peak_python_mb(fn) -> float:
     """Peak memory that ``fn()`` allocates through Python and numpy (tracemalloc), in MB.
 

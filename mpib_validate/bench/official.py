@@ -27,14 +27,13 @@ installed)" and returns.
 from __future__ import annotations
 
 import math
-import resource
 import statistics
 import time
 from pathlib import Path
 
 import numpy as np
 
-from mpib_validate.bench.machine import finish, machine_info, mean_table
+from mpib_validate.bench.machine import finish, machine_info, mean_table, peak_rss_mb
 
 N_PLANES = 32
 SKIPPED = "skipped (torch not installed)"
@@ -253,7 +252,7 @@ def run(out: Path, quick: bool = True, torch_available: bool | None = None) -> d
               "machine": {**machine_info(), "torch": torch.__version__,
                           "torch_threads": O.OFFICIAL_THREADS},
               "rows": rows, "timing": timing,
-              "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}
+              "peak_rss_mb": peak_rss_mb()}
     result["summary"] = _summarise(result)
     return finish(out, "official", result, _markdown)
 

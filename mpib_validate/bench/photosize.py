@@ -90,6 +90,7 @@ def time_refocus(width: int, height: int, preset: str, seed: int = 0) -> dict:
     """One refocus of the generated input: CPU and wall seconds, planes, peak memory
     growth (max RSS of this process, which should be fresh, minus its RSS before)."""
     from mpib_validate import refocus as R
+    from mpib_validate.bench.machine import peak_rss_mb
     from mpib_validate.budget import format_bytes, memory_limit, refocus_estimate
 
     colour, depth, A, d_f = photo_passes(seed, width, height)
@@ -106,7 +107,7 @@ def time_refocus(width: int, height: int, preset: str, seed: int = 0) -> dict:
     c0, w0 = time.process_time(), time.perf_counter()
     res = R.refocus(passes, A, d_f, preset)
     cpu, wall = time.process_time() - c0, time.perf_counter() - w0
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    peak = peak_rss_mb() * 2 ** 20
     return {"size": f"{width}x{height}", "preset": preset, "planes": res.info["planes"],
             "largest_radius_px": res.info["largest_radius_px"], "cpu_s": cpu, "wall_s": wall,
             "peak_rss_bytes": int(peak), "rss_before_bytes": int(before),

@@ -13,13 +13,12 @@ on the cached MPI (:mod:`mpib_validate.bench.focuspull`).
 from __future__ import annotations
 
 import math
-import resource
 import tempfile
 import time
 from pathlib import Path
 
 
-from mpib_validate.bench.machine import (finish, machine_info, mean_table, peak_python_mb, run_worker, worker_main)
+from mpib_validate.bench.machine import (finish, machine_info, mean_table, peak_python_mb, peak_rss_mb, run_worker, worker_main)
 
 
 def _methods(scene, res):
@@ -109,7 +108,7 @@ def _hd_worker(cfg) -> dict:
     return {"seconds": seconds, "planes": res.info["planes"],
             "largest_radius_px": res.info["largest_radius_px"],
             "fill_fraction": res.info["fill_fraction"],
-            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}
+            "peak_rss_mb": peak_rss_mb()}
 
 
 def _hd_input(path: Path) -> dict:

@@ -3,14 +3,13 @@
 The scene is the official generator's example (three fronto-parallel cards at
 disparities 0.01, 0.5, 0.9, ``A = 50``, ``d_f = 0.5``) with the official 51-per-side
 aperture grid (1,957 samples). Each configuration runs in its own subprocess, so that
-its peak memory (``ru_maxrss``) is its own; times are the median of the repeats after
+its peak memory (``VmHWM``, :func:`~mpib_validate.bench.machine.peak_rss_mb`) is its own; times are the median of the repeats after
 a warm-up (the first Dr.Jit run also compiles its kernel, reported separately).
 """
 
 from __future__ import annotations
 
 import json
-import resource
 import statistics
 import tempfile
 import time
@@ -19,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from mpib_validate.io.atomic import write_text
-from mpib_validate.bench.machine import machine_info, run_worker, worker_main
+from mpib_validate.bench.machine import machine_info, peak_rss_mb, run_worker, worker_main
 
 TARGET_SPEEDUP = 20.0
 TARGET_LLVM_SECONDS = 10.0
@@ -45,7 +44,7 @@ def _worker(cfg: dict) -> dict:
         np.save(cfg["save"], img)
     return {"backend_ran": meta["backend"], "notice": meta.get("backend_notice", ""),
             "first_seconds": first, "seconds": times, "median_seconds": statistics.median(times),
-            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+            "peak_rss_mb": peak_rss_mb(),
             "samples": len(smp), "cards": len(scene.cards)}
 
 
