@@ -414,6 +414,13 @@ def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
         layers, slab_of, settings.chain_px / blur_parameter, (ny, nx), m, frame)
     jobs = _layer_parts(layers, blur_parameter, focus_disparity, settings, cell, canvas,
                         frame, mpi.colour_max is None)
+
+    def lay_slab():  # the summed slab onto acc: "over", or into the chain of its surface
+        if chain is None:
+            _over_tiles(acc, group_sum, group_tiles, m, frame)
+        else:
+            chain.push(acc, group_sum, group_tiles, group_id)
+
     with _Prefetch(jobs, PREFETCH_PARTS) as items:
         for item in items:
             if item[0] == "layer":  # far to near
@@ -425,10 +432,7 @@ def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
                 layer = layers[i]
                 if layer.group is not None:
                     if group_tiles is not None and slab_of[i] != group_id:
-                        if chain is None:
-                            _over_tiles(acc, group_sum, group_tiles, m, frame)
-                        else:
-                            chain.push(acc, group_sum, group_tiles, group_id)
+                        lay_slab()
                         group_tiles = None
                     if group_sum is None:
                         group_sum = np.zeros_like(acc)
@@ -447,10 +451,7 @@ def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
             group_sum[y0 - m:y1 - m, x0 - m:x1 - m] += blurred
             group_tiles[y0 // _TILE:-(-y1 // _TILE), x0 // _TILE:-(-x1 // _TILE)] = True
     if group_tiles is not None:
-        if chain is None:
-            _over_tiles(acc, group_sum, group_tiles, m, frame)
-        else:
-            chain.push(acc, group_sum, group_tiles, group_id)
+        lay_slab()
     if chain is not None:
         chain.flush(acc)
     if progress is not None:
@@ -562,15 +563,22 @@ def _slab_layers(mpi: MPI, span: float):
     return merged
 
 
+def _disparity_ranges(layers, keys) -> tuple[dict, dict]:
+    """``(lo, hi)``: the smallest and largest layer disparity per key (``keys[i]`` of
+    ``layers[i]``; None keys are left out)."""
+    lo, hi = {}, {}
+    for layer, k in zip(layers, keys):
+        if k is not None:
+            lo[k] = min(lo.get(k, math.inf), layer.disparity)
+            hi[k] = max(hi.get(k, -math.inf), layer.disparity)
+    return lo, hi
+
+
 def _slabs(layers, span: float) -> list:
     """Slab id of each layer: consecutive additive groups merged while the slab's
     disparity span stays within ``span`` (0: one slab per group); None for ungrouped
     layers."""
-    lo, hi = {}, {}
-    for l in layers:
-        if l.group is not None:
-            lo[l.group] = min(lo.get(l.group, math.inf), l.disparity)
-            hi[l.group] = max(hi.get(l.group, -math.inf), l.disparity)
+    lo, hi = _disparity_ranges(layers, [l.group for l in layers])
     out, slab, start, last = [], -1, 0.0, None
     for l in layers:
         if l.group is None:
@@ -690,11 +698,7 @@ class _Chain:
     """
 
     def __init__(self, layers, slab_of, gap: float, tiles_shape, margin: int, frame):
-        self.lo, self.hi = {}, {}
-        for layer, s in zip(layers, slab_of):
-            if s is not None:
-                self.lo[s] = min(self.lo.get(s, math.inf), layer.disparity)
-                self.hi[s] = max(self.hi.get(s, -math.inf), layer.disparity)
+        self.lo, self.hi = _disparity_ranges(layers, slab_of)
         self.gap, self.m, self.frame = gap, margin, frame
         self.shape = tiles_shape
         self.sum = None  # the chain's combined premultiplied colour and normaliser
