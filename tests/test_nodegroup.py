@@ -165,6 +165,39 @@ def test_an_hdr_emitter_on_an_occluding_edge_is_not_smeared_by_the_fill():
     assert 0.3 * own < got <= own * (1 + 1e-3), (got, own)
 
 
+def test_a_sparse_slab_fills_the_hidden_background_with_its_own_coverage():
+    """A wall (d = 0.2), a fence of 1 px wires every 10 px (d = 0.5) and a 2 px strand
+    in front (d = 1.0): behind the strand, the fence's fill covers what the fence covers
+    around it, 1/10 of the background (the fraction of wire among the visible pixels on
+    the fence or behind it, over the DENSITY_PX window; +-0.02: the eps of the estimate
+    and the window's discretisation, averaged along the strand), not all of it as
+    Inpaint's nearest-pixel colour alone would; the wall's fill stays opaque."""
+    H, W = 60, 120
+    image = np.ones((H, W, 4), np.float32)
+    image[..., :3] = 0.6
+    depth = np.full((H, W), 5.0, np.float32)
+    depth[:, 5::10] = 2.0  # the wires
+    image[:, 5::10, :3] = 0.05
+    depth[29:31, :] = 1.0  # the strand
+    image[29:31, :, :3] = 0.9
+    A = 20.0  # radii 6 px wall-fence, 10 px fence-strand: three slabs
+    spec = ng.spec_from_render(depth, A, blur="convolve")
+    assert spec.disparities == pytest.approx((0.2, 0.5, 1.0)) and spec.slabs == (0, 1, 2)
+    values = {"Focus Distance": 5.0, "F-Stop": 1e-3 * 50 / (2 * A) * 50 / 36 * W,
+              "Focal Length": 50.0, "Sensor Width": 36.0, "Resolution X": W,
+              "Resolution Y": H}
+    strand = (slice(29, 31), slice(20, W - 20))
+    nodes = ng.evaluate(ng.describe(spec), image, depth, values, keep=True)["nodes"]
+    fence_share = nodes["slab1.fill_share.a"][strand]
+    assert abs(float(fence_share.mean()) - 0.1) < 0.02, float(fence_share.mean())
+    assert float(nodes["slab0.fill_share.a"][strand].min()) > 0.99
+    import dataclasses
+
+    plain = ng.evaluate(ng.describe(dataclasses.replace(spec, density_px=0)), image, depth,
+                        values, keep=True)["nodes"]
+    assert float(plain["slab1.filled"][3][strand].min()) == 1.0  # Inpaint alone: opaque
+
+
 def test_an_emitter_between_two_slices_keeps_its_energy():
     """An emitter (radiance 20, 2x2 px) halfway between two slices, before an in-focus
     wall: the additive split gives it to both slices with weights 1/2 and 1/2, so the
