@@ -17,10 +17,12 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty
 from . import calibrate
 
 BLUR_ITEMS = (
-    ("AUTO", "Auto", "Convolve on Blender 5.x (fractional radii), Bokeh Blur on 4.x"),
+    ("AUTO", "Auto", "On Blender 5.x Convolve for blurs from 12 px (fractional radii, the "
+                     "same cost at any radius) and Bokeh Blur below (cheaper there); "
+                     "Bokeh Blur on 4.x"),
     ("CONVOLVE", "Convolve", "FFT convolution with a disk built from nodes (Blender 5.x)"),
     ("BOKEH", "Bokeh Blur", "Bokeh Blur with a round Bokeh Image: whole-pixel radii, cost "
-                            "growing with the square of the radius (faster for small blurs)"),
+                            "growing with the radius (faster below about 13 px)"),
 )
 FILL_ITEMS = (
     ("INPAINT", "Inpaint", "Extend each slice under the nearer ones (hidden background)"),
@@ -121,7 +123,9 @@ class MPIB_OT_add_refocus_node(bpy.types.Operator):
         blur = ("bokeh" if legacy else "convolve") if self.blur == "AUTO" else self.blur.lower()
         spec = ng.make_spec(d, A, fill=self.fill.lower(), blur=blur,
                             max_radius_px=max(r_max, now.blur_parameter * float(d[-1])),
-                            focus_disparity=[c.focus_disparity for c in cams])
+                            # Auto: Bokeh Blur for the slices that stay small (cheaper)
+                            focus_disparity=([c.focus_disparity for c in cams]
+                                             if self.blur == "AUTO" else None))
         graph = ng.describe(spec)
         tree = ng.compositor_tree(scene, create=True)
         node = tree.nodes.get(ng.GROUP_NAME)

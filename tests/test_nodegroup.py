@@ -342,18 +342,22 @@ def _model_gap(res: dict, frame: str, legacy: bool = False) -> tuple[float, np.n
 @pytest.fixture(scope="module")
 def cards(tmp_path_factory):
     """The checker wall at 6 m behind a card at 1.5 m; focus keyed 6 m (frame 1) and
-    1.5 m (frame 2); the operator's defaults (Convolve on 5.x, the Inpaint fill)."""
+    1.5 m (frame 2); Convolve for every slice (Auto would take Bokeh Blur for these 4 px
+    blurs), the Inpaint fill."""
     pytest.importorskip("bpy")
     work = tmp_path_factory.mktemp("nodegroup_cards")
     res = _session(sys.executable, "render", _render_args(
-        work, frames=[1, 2], keys={"focus": [[1, 6.0], [2, 1.5]]}, save=str(work / "cards.blend")))
+        work, frames=[1, 2], keys={"focus": [[1, 6.0], [2, 1.5]]}, blur="CONVOLVE",
+        save=str(work / "cards.blend")))
+    assert res["spec"]["blur"] == "convolve" and not res["spec"]["bokeh_slices"]
     return res, work
 
 
 @pytest.fixture(scope="module")
 def sphere(tmp_path_factory):
-    """A sphere and a card before a wall; the operator run twice: its defaults (Convolve
-    on 5.x), then Bokeh Blur with at most 3 slices (regenerated in place)."""
+    """A sphere and a card before a wall; the operator run twice: its defaults (Auto: on
+    5.x Convolve from 12 px, Bokeh Blur below), then Bokeh Blur with at most 3 slices
+    (regenerated in place)."""
     pytest.importorskip("bpy")
     work = tmp_path_factory.mktemp("nodegroup_sphere")
     res = _session(sys.executable, "render", _render_args(
