@@ -189,6 +189,28 @@ def test_default_preset_beats_the_sharp_input_at_boundaries(suite):
     assert floor >= ob_default + 5.0, (floor, ob_default)
 
 
+def test_degraded_depth_methods_are_seeded_and_finite(suite):
+    """The bench's degraded-depth methods: one image per method, finite, the same on a
+    second run (the degradation is seeded per scene), and the degraded depth changes the
+    output (the refocus does use it)."""
+    from mpib_validate.refocus import load_passes
+
+    _, spec, folder = suite
+    sc = B.load_scene(folder)
+    p = load_passes(folder / "passes.exr")
+    A, d_f = p.camera.image["blur_parameter"], p.camera.image["focus_disparity"]
+    a = BB.degraded_images(sc, p, A, d_f)
+    b = BB.degraded_images(sc, p, A, d_f)
+    assert set(a) == {BB.DEGRADED, BB.DEGRADED_GUIDED, BB.NODE_DEGRADED}
+    for name in a:
+        assert np.isfinite(a[name][0]).all()
+        np.testing.assert_array_equal(a[name][0], b[name][0])
+    from mpib_validate.refocus import refocus
+
+    exact = BB.premultiplied(refocus(p, A, d_f).image)
+    assert np.abs(a[BB.DEGRADED][0] - exact).max() > 0.05
+
+
 @pytest.mark.slow
 def test_blender_bench_writes_its_page(tmp_path):
     """The whole suite at a tiny size: page, JSON, crops, plots; every scene and method."""
@@ -199,6 +221,8 @@ def test_blender_bench_writes_its_page(tmp_path):
     assert len(scenes) == 2 * len(B.SUITE_KINDS)
     methods = {r["method"] for r in res["rows"]}
     for m in ("preset-default", "preset-draft", "preset-best", "blender-defocus-node",
-              "sharp input", "exact-mpi", "truth noise floor"):
+              "sharp input", "exact-mpi", "truth noise floor", BB.DEGRADED,
+              BB.DEGRADED_GUIDED, BB.NODE_DEGRADED):
         assert m in methods
     assert len(res["emitters"]) == 2
+    assert "## Degraded depth" in (tmp_path / "blender.md").read_text()

@@ -37,6 +37,13 @@ moment of each emitter's window, ``r^2 = 2 (E_blurred - E_sharp)`` (the sharp re
 moment holds the disk's own size and the pixel box; convolution adds moments), and
 energy = the window's sum, for the default preset and the Defocus node.
 
+A third part replaces the Z pass by a degraded disparity, as a monocular estimator errs
+(:func:`mpib_validate.cards.degrade.degrade_disparity`, the photos suite's defaults,
+seeded per scene): the default preset without and with the guided refinement
+(``refocus(..., refine="guided")``) and the Defocus node on the same degraded depth,
+against the same truth; the exact depth's scores are the bound. It is the photos
+suite's measurement on scenes that are not cards.
+
 The Cycles renders are cached under ``<out>/blender-cache`` (see
 :func:`blender_scenes.render_suite`): a re-run renders nothing.
 """
@@ -68,6 +75,9 @@ DEFAULT = "preset-default"
 LAYERED = "layered"
 NODE = "blender-defocus-node"
 GROUP = "mpib-node-group (compositor)"
+DEGRADED = "default, degraded depth"
+DEGRADED_GUIDED = "default, degraded depth + guided"
+NODE_DEGRADED = "Defocus node, degraded depth"
 
 
 def boundary_mask(depth: np.ndarray, A: float, d_f: float, window: int = 9) -> np.ndarray:
@@ -93,9 +103,10 @@ def _timed(fn):
     return out, time.perf_counter() - t0
 
 
-def method_images(sc, exact_samples: int = 1024, layered=None) -> dict:
+def method_images(sc, exact_samples: int = 1024, layered=None, degraded: bool = True) -> dict:
     """``{method: (rgb (H, W, 3), seconds)}`` for one :class:`SuiteScene`; ``layered``:
-    the path of its layered render (``layers.exr``), if any."""
+    the path of its layered render (``layers.exr``), if any; ``degraded``: also the
+    methods on a degraded depth (:func:`degraded_images`)."""
     from mpib_validate.cards import samples
     from mpib_validate.blender.scenes import camera, lens
     from mpib_validate.compositor.composite import render_exact
@@ -130,6 +141,8 @@ def method_images(sc, exact_samples: int = 1024, layered=None) -> dict:
         out[NODE] = (rgb, seconds)
         out[GROUP] = node_group(passes, sc.spec, A)
     out["sharp input"] = (passes.colour, 0.0)
+    if degraded:
+        out.update(degraded_images(sc, passes, A, d_f))
     p = get_preset("default")
 
     def exact():
@@ -142,6 +155,39 @@ def method_images(sc, exact_samples: int = 1024, layered=None) -> dict:
     img, seconds = _timed(exact)
     out["exact-mpi"] = (premultiplied(img), seconds)
     out["exact-mpi (normalised)"] = (img[..., :3], seconds)
+    return out
+
+
+def degraded_seed(sc) -> int:
+    """The scene's seed for the degradation (the same map on every run)."""
+    import zlib
+
+    return zlib.crc32(f"{sc.spec.kind}-{sc.spec.seed}-{sc.spec.focus}".encode()) & 0xFFFF
+
+
+def degraded_images(sc, passes, A: float, d_f: float) -> dict:
+    """The default preset on a degraded disparity (refinement off and guided) and the
+    Defocus node on the same degraded depth (when bpy is there)."""
+    import importlib.util
+
+    from mpib_validate.bench.photos import disparity_to_depth
+    from mpib_validate.blender.scenes import lens
+    from mpib_validate.cards.degrade import degrade_disparity
+    from mpib_validate.layers.passes import depth_to_disparity
+    from mpib_validate.refocus import refocus
+
+    D = depth_to_disparity(passes.depth, source=passes.depth_source)
+    Dg = degrade_disparity(D, degraded_seed(sc))
+    depth_g = disparity_to_depth(Dg)
+    pg = replace(passes, depth=depth_g, disparity=Dg)
+    out = {}
+    for name, refine in ((DEGRADED, None), (DEGRADED_GUIDED, "guided")):
+        res, seconds = _timed(lambda: refocus(pg, A, d_f, "default", refine=refine))
+        out[name] = (premultiplied(res.image), seconds)
+    if importlib.util.find_spec("bpy") is not None:
+        from mpib_validate.compositor.defocus_node import defocus
+
+        out[NODE_DEGRADED] = defocus(passes.colour, depth_g, lens(sc.spec))
     return out
 
 
@@ -340,7 +386,7 @@ def run(out: Path, quick: bool = True, config: dict | None = None) -> dict:
     for folder in folders[len(specs):]:
         sc = load_scene(folder)
         print(f"bench blender: {sc.spec.name} (radius and energy) ...", flush=True)
-        images = method_images(sc, cfg.get("exact_samples", 1024))
+        images = method_images(sc, cfg.get("exact_samples", 1024), degraded=False)
         emitters.append(emitter_check(sc, images))
     if strips:
         write_crops(out / "blender-crops.png", strips)
@@ -410,6 +456,19 @@ def _summarise(result) -> dict:
             f"{len(layered)} scenes and foci; the layered colour render costs {wall.min():.2f}-"
             f"{wall.max():.2f}x the single pass's wall time ({cpu.min():.2f}-{cpu.max():.2f}x its "
             f"CPU time) at the same samples.")
+    deg = degraded_table(result)
+    if deg:
+        mean = {k: float(np.mean([r[k] for r in deg])) for k in
+                ("exact", "degraded", "guided", "node_degraded")}
+        margin = np.array([r["guided"] - r["node_degraded"] for r in deg])
+        heads.append(
+            f"Blender scenes with a degraded depth (a monocular estimator's errors, as the "
+            f"photos suite's): the default preset {mean['degraded']:.1f} dB PSNR_ob, "
+            f"{mean['guided']:.1f} dB with the guided refinement, against "
+            f"{mean['exact']:.1f} dB from the exact depth ({mean['guided'] - mean['exact']:+.1f} "
+            f"dB) and {mean['node_degraded']:.1f} dB for the Defocus node on the same degraded "
+            f"depth ({margin.mean():+.1f} dB; the refined default wins {int((margin > 0).sum())} "
+            f"of {len(margin)}, worst {margin.min():+.1f} dB).")
     g = {r["method"]: r for r in table}
     if DEFAULT in g and "exact-mpi" in g:
         heads.append(f"Blender scenes: the same MPI rendered exactly reaches PSNR_ob "
@@ -457,6 +516,24 @@ def layered_table(result) -> list[dict]:
         row["layered_minus_default"] = row["layered"] - row["default"]
         row["layered_minus_node"] = row["layered"] - row["node"]
         out.append(row)
+    return out
+
+
+def degraded_table(result) -> list[dict]:
+    """Per scene and focus: PSNR_ob of the default preset on the exact and the degraded
+    depth (refinement off, guided) and of the Defocus node on both."""
+    by = {}
+    for r in result["rows"]:
+        by.setdefault(r["scene"], {})[r["method"]] = r
+    out = []
+    for scene, g in by.items():
+        if DEGRADED not in g or DEFAULT not in g:
+            continue
+        out.append({"scene": scene, "exact": g[DEFAULT]["psnr_ob"],
+                    "degraded": g[DEGRADED]["psnr_ob"], "guided": g[DEGRADED_GUIDED]["psnr_ob"],
+                    "node_exact": g[NODE]["psnr_ob"] if NODE in g else math.nan,
+                    "node_degraded": (g[NODE_DEGRADED]["psnr_ob"] if NODE_DEGRADED in g
+                                      else math.nan)})
     return out
 
 
@@ -520,6 +597,24 @@ def _markdown(result) -> str:
         lines += ["", "Groups per scene (automatic, far to near): " + "; ".join(
             f"{s['scene'].rsplit('-', 1)[0]}: {s['layered']['report']}" for s in result["scenes"]
             if s["scene"].endswith("-far") and "layered" in s) + "."]
+    deg = degraded_table(result)
+    if deg:
+        lines += ["", "## Degraded depth (a monocular estimator's errors)", "",
+                  "PSNR_ob against Cycles' depth of field when the Z pass is replaced by a "
+                  "degraded disparity (the photos suite's: Gaussian blur of 2 px, 4x down and "
+                  "bilinear up, 2 % multiplicative noise per low-resolution pixel, a 1.5 px "
+                  "shift; seeded per scene). The exact depth's scores are the bound.", "",
+                  "| scene | default, exact | default, degraded | default, degraded + guided "
+                  "| Defocus node, exact | Defocus node, degraded | guided - node (degraded) |",
+                  "|---|---|---|---|---|---|---|"]
+        for r in deg:
+            lines.append(f"| {r['scene']} | {_fmt(r['exact'])} | {_fmt(r['degraded'])} | "
+                         f"{_fmt(r['guided'])} | {_fmt(r['node_exact'])} | "
+                         f"{_fmt(r['node_degraded'])} | {r['guided'] - r['node_degraded']:+.2f} |")
+        keys = ("exact", "degraded", "guided", "node_exact", "node_degraded")
+        mean = {k: float(np.mean([r[k] for r in deg])) for k in keys}
+        lines.append(f"| mean | " + " | ".join(_fmt(mean[k]) for k in keys) +
+                     f" | {mean['guided'] - mean['node_degraded']:+.2f} |")
     lines += ["", "## Every method per scene", "",
               "| scene | method | time (s) | PSNR | PSNR_ob | SSIM | SSIM_ob |",
               "|---|---|---|---|---|---|---|"]
