@@ -7,8 +7,10 @@ extension's operator adds the node, the compositor renders it, and the numpy mod
 the same description must give the same image. The saved .blend is then rendered by a
 fresh Blender that has neither the extension nor this package.
 
-A second Blender (4.2 LTS) runs the same checks when its Python is found
-(``MPIB_BPY42_PYTHON`` or the repository's .venv-bpy42, which ``make test-blender-versions`` builds); otherwise they skip with a notice.
+A second Blender (4.2 LTS) and a third (the newest 5.x, Python 3.13) run the same checks
+when their Pythons are found (``MPIB_BPY42_PYTHON`` / ``MPIB_BPY5X_PYTHON``, or the
+repository's .venv-bpy42 / .venv-bpy5x, which ``make test-blender-versions`` builds);
+otherwise they skip with a notice.
 """
 
 from __future__ import annotations
@@ -299,6 +301,13 @@ def _bpy42_python() -> str | None:
     return cand if cand and os.path.exists(cand) else None
 
 
+def _bpy5x_python() -> str | None:
+    # the newest 5.x (Python 3.13) that `make test-blender-versions` builds
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    cand = os.environ.get("MPIB_BPY5X_PYTHON") or os.path.join(repo, ".venv-bpy5x", "bin", "python")
+    return cand if cand and os.path.exists(cand) else None
+
+
 def _session(python: str, command: str, args: dict, clean: bool = False) -> dict:
     env = dict(os.environ)
     if clean:  # nothing of this project importable: no PYTHONPATH, no extra site
@@ -508,6 +517,50 @@ def test_legacy_inpaint_fill_renders(legacy, tmp_path):
     assert res["spec"]["fill"] == "inpaint"
     image, depth, node = _passes(res["frames"]["1"]["path"])
     assert np.isfinite(node).all() and np.abs(node - image)[..., :3].max() > 0.1
+
+
+# --------------------------------------------------------------------------------------
+# The newest Blender 5.x (Python 3.13, a third environment)
+
+
+@pytest.fixture(scope="module")
+def newest(tmp_path_factory):
+    python = _bpy5x_python()
+    if python is None:
+        pytest.skip("no Blender 5.x Python 3.13 environment (set MPIB_BPY5X_PYTHON, or "
+                    "`make test-blender-versions` builds .venv-bpy5x); the 5.x checks did not run")
+    work = tmp_path_factory.mktemp("nodegroup_5x")
+    for sub in ("cards", "sphere"):
+        (work / sub).mkdir()
+    cards = _session(python, "render", _render_args(
+        work / "cards", frames=[1, 2], keys={"focus": [[1, 6.0], [2, 1.5]]}, blur="CONVOLVE",
+        save=str(work / "cards5x.blend")))
+    sphere = _session(python, "render", _render_args(work / "sphere", scene="sphere",
+                                                     focus=2.5))
+    return python, cards, sphere, work
+
+
+def test_newest_group_equals_the_numpy_model(newest):
+    """The newest 5.x (5.3 when this was written; its compositor API moved again, see
+    mpib_validate.blender.compat): Convolve + Inpaint on both keyed frames, and Auto
+    (Bokeh Blur for the small blurs) + Inpaint on the sphere, equal the model."""
+    _, cards, sphere, _ = newest
+    assert cards["version"].startswith("5.") and cards["spec"]["blur"] == "convolve"
+    for res, frame in ((cards, "1"), (cards, "2"), (sphere, "1")):
+        gap, node = _model_gap(res, frame)
+        assert gap < MODEL_TOL, (res["version"], frame, gap)
+        image, _, _ = _passes(res["frames"][frame]["path"])
+        assert np.abs(node[..., :3] - image[..., :3]).max() > 0.1  # it did blur
+
+
+def test_newest_reopened_without_the_extension_renders_identically(newest):
+    python, cards, _, work = newest
+    out = _session(python, "reopen", {"blend": cards["saved"], "frame": 2,
+                                      "out": str(work / "reopened.exr")}, clean=True)
+    assert out["extension_loaded"] is False
+    _, _, before = _passes(cards["frames"]["2"]["path"])
+    _, _, after = _passes(out["path"])
+    assert np.abs(after - before).max() <= 1e-6
 
 
 # --------------------------------------------------------------------------------------

@@ -2,7 +2,7 @@
 
 A Python-defined node cannot execute in a compositor tree, but a node group of built-in
 nodes runs in Blender 4.2 to 5.x and keeps working when the .blend is opened without the
-extension (checked here on the CPU compositor of 5.0.1 and 4.2.23; every node used also
+extension (checked here on the CPU compositor of 5.0.1, 4.2.23 and 5.3.0; every node used also
 has a GPU implementation, not checked here). This module writes Eq. 1 of the
 supplement as such a group. The graph is described ONCE, as data (:func:`describe`:
 a list of :class:`Op`), and that one description is
