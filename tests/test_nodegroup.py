@@ -262,6 +262,23 @@ def test_slice_layers_are_the_mpi_split(slab_px):
             assert np.abs((0 if layer is None else layer[..., 3]) - part).max() < 1e-5, (i, s)
 
 
+def test_every_node_of_a_graph_has_its_own_name():
+    """A node named twice would shadow the first in the numpy model and in the emitted
+    group (both look nodes up by name): the builder refuses it, and the graphs of the
+    option combinations all build."""
+    b = ng._Builder()
+    b.add("x", "bokeh_disk")
+    with pytest.raises(ValueError, match="used twice"):
+        b.add("x", "bokeh_disk")
+    for fill in ("inpaint", "off"):
+        for blur in ("bokeh", "convolve"):
+            for slab_px in (0.0, 5.0):
+                spec = ng.make_spec((0.1, 0.3, 0.55, 1.0), 20.0, fill=fill, blur=blur,
+                                    slab_px=slab_px, focus_disparity=0.3)
+                ops = ng.describe(spec).ops
+                assert len({o.name for o in ops}) == len(ops)
+
+
 def test_slice_radius_is_the_thin_lens_radius():
     """Inside the graph ``r_i = A |d_i - d_f|`` with ``A`` as camera.blender_camera
     computes it (float32: relative 1e-6)."""

@@ -467,8 +467,12 @@ def spec_from_render(depth: np.ndarray, blur_parameter: float, *,
 class _Builder:
     def __init__(self):
         self.ops: list[Op] = []
+        self.names: set = set()
 
     def add(self, name, kind, *args, **params) -> Ref:
+        if name in self.names:  # a second node of one name would shadow the first
+            raise ValueError(f"node name {name!r} used twice")
+        self.names.add(name)
         self.ops.append(Op(name, kind, tuple(args), tuple(sorted(params.items()))))
         return Ref(name)
 
