@@ -145,6 +145,13 @@ class MPIB_OT_add_refocus_node(bpy.types.Operator):
             if r_max > 0.1 * side:
                 msg += (f"; blur radii up to {r_max:.0f} px are cut to {0.1 * side:.0f} px "
                         f"(Bokeh Blur's limit in Blender 4.x, 10 % of the larger side)")
+        cam = scene.camera.data
+        if cam.dof.use_dof:  # the renderer blurs, then the node blurs again
+            warn = (f"depth of field is on in the camera '{scene.camera.name}': the render "
+                    f"comes out blurred and the node blurs it again; turn Camera > Depth of "
+                    f"Field off (its f-stop and focus still drive the node)")
+            msg += "; " + warn
+            self.report({"WARNING"}, warn)
         if hasattr(scene, "mpib"):
             scene.mpib.last_message = msg
         self.report({"INFO"}, msg)

@@ -395,6 +395,7 @@ def test_operator_adds_the_node_with_simple_camera_drivers(cards):
     res, _ = cards
     assert res["kept_passes"] and res["operator"] == ["FINISHED"]
     assert "from the last render's depth" in res["message"], res["message"]
+    assert "depth of field is on" not in res["message"]  # the passes were sharp
     spec = res["spec"]
     # the two surfaces' disparities (1/6 and 1/1.5), nothing in between
     assert spec["disparities"] == pytest.approx([1 / 6, 1 / 1.5], abs=1e-6)
@@ -472,6 +473,15 @@ def test_reopened_without_the_extension_renders_identically(cards):
     _, _, before = _passes(res["frames"]["2"]["path"])
     _, _, after = _passes(out["path"])
     assert np.abs(after - before).max() <= 1e-6
+
+
+def test_operator_warns_when_the_camera_has_depth_of_field_on(tmp_path):
+    """With the camera's depth of field on, the render is already blurred and the node
+    blurs it again: the operator says so (and still adds the node)."""
+    pytest.importorskip("bpy")
+    res = _session(sys.executable, "render", _render_args(tmp_path, use_dof=True, spp=4))
+    assert res["operator"] == ["FINISHED"]
+    assert "depth of field is on" in res["message"]
 
 
 def test_structural_options_regenerate_the_group_in_place(sphere):

@@ -131,6 +131,8 @@ if command == "render":
     cam = sc.camera.data
     cam.dof.focus_distance = args.get("focus", 6.0)
     cam.dof.aperture_fstop = args.get("fstop", 1.0)
+    if args.get("use_dof"):  # an artist who left depth of field on
+        cam.dof.use_dof = True
     sys.path.insert(0, args["root"])
     import blender_addon  # the extension's modules, registered directly (not installed)
 
