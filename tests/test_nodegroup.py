@@ -365,6 +365,28 @@ def _model_gap(res: dict, frame: str, legacy: bool = False) -> tuple[float, np.n
     return float(np.abs(model["Image"][..., :3] - node[..., :3]).max()), node
 
 
+def _assert_equals_the_model(runs) -> None:
+    """Each ``(session result, frame)``: the compositor's output is the numpy model's to
+    MODEL_TOL, and it is not the sharp image (it did blur)."""
+    for res, frame in runs:
+        gap, node = _model_gap(res, frame)
+        assert gap < MODEL_TOL, (res.get("version"), res["spec"], frame, gap)
+        image, _, _ = _passes(res["frames"][frame]["path"])
+        assert np.abs(node[..., :3] - image[..., :3]).max() > 0.1
+
+
+def _assert_reopens_identically(python: str, res: dict, work: Path) -> None:
+    """The saved .blend, opened by a fresh Blender (``python``) that imports nothing of
+    this project, renders frame 2 (the keyed focus, through the saved drivers) as the
+    session did, to 1e-6."""
+    out = _session(python, "reopen", {"blend": res["saved"], "frame": 2,
+                                      "out": str(work / "reopened.exr")}, clean=True)
+    assert out["extension_loaded"] is False
+    _, _, before = _passes(res["frames"]["2"]["path"])
+    _, _, after = _passes(out["path"])
+    assert np.abs(after - before).max() <= 1e-6
+
+
 @pytest.fixture(scope="module")
 def cards(tmp_path_factory):
     """The checker wall at 6 m behind a card at 1.5 m; focus keyed 6 m (frame 1) and
@@ -435,11 +457,7 @@ def test_drivers_give_the_thin_lens_of_the_camera(tmp_path, fit, size):
 def test_group_output_equals_the_numpy_model(cards, sphere):
     """Convolve + Inpaint (cards, both frames) and Bokeh Blur + Inpaint (sphere): the
     compositor's output is the model's to MODEL_TOL, and it is not the sharp image."""
-    for res, frame in ((cards[0], "1"), (cards[0], "2"), (sphere[0], "1")):
-        gap, node = _model_gap(res, frame)
-        assert gap < MODEL_TOL, (res["spec"], frame, gap)
-        image, _, _ = _passes(res["frames"][frame]["path"])
-        assert np.abs(node[..., :3] - image[..., :3]).max() > 0.1  # it did blur
+    _assert_equals_the_model(((cards[0], "1"), (cards[0], "2"), (sphere[0], "1")))
 
 
 def test_follows_a_keyed_focus_distance(cards):
@@ -467,12 +485,7 @@ def test_reopened_without_the_extension_renders_identically(cards):
     """The saved .blend, opened by a fresh Blender that imports nothing of this project,
     renders frame 2 (the keyed focus, through the saved drivers) exactly as before."""
     res, work = cards
-    out = _session(sys.executable, "reopen", {"blend": res["saved"], "frame": 2,
-                                               "out": str(work / "reopened.exr")}, clean=True)
-    assert out["extension_loaded"] is False
-    _, _, before = _passes(res["frames"]["2"]["path"])
-    _, _, after = _passes(out["path"])
-    assert np.abs(after - before).max() <= 1e-6
+    _assert_reopens_identically(sys.executable, res, work)
 
 
 def test_operator_warns_when_the_camera_has_depth_of_field_on(tmp_path):
@@ -529,12 +542,7 @@ def test_legacy_group_equals_the_numpy_model(legacy):
 
 def test_legacy_reopened_without_the_extension_renders_identically(legacy):
     python, res, work = legacy
-    out = _session(python, "reopen", {"blend": res["saved"], "frame": 2,
-                                      "out": str(work / "reopened.exr")}, clean=True)
-    assert out["extension_loaded"] is False
-    _, _, before = _passes(res["frames"]["2"]["path"])
-    _, _, after = _passes(out["path"])
-    assert np.abs(after - before).max() <= 1e-6
+    _assert_reopens_identically(python, res, work)
 
 
 def test_legacy_inpaint_fill_renders(legacy, tmp_path):
@@ -573,21 +581,12 @@ def test_newest_group_equals_the_numpy_model(newest):
     (Bokeh Blur for the small blurs) + Inpaint on the sphere, equal the model."""
     _, cards, sphere, _ = newest
     assert cards["version"].startswith("5.") and cards["spec"]["blur"] == "convolve"
-    for res, frame in ((cards, "1"), (cards, "2"), (sphere, "1")):
-        gap, node = _model_gap(res, frame)
-        assert gap < MODEL_TOL, (res["version"], frame, gap)
-        image, _, _ = _passes(res["frames"][frame]["path"])
-        assert np.abs(node[..., :3] - image[..., :3]).max() > 0.1  # it did blur
+    _assert_equals_the_model(((cards, "1"), (cards, "2"), (sphere, "1")))
 
 
 def test_newest_reopened_without_the_extension_renders_identically(newest):
     python, cards, _, work = newest
-    out = _session(python, "reopen", {"blend": cards["saved"], "frame": 2,
-                                      "out": str(work / "reopened.exr")}, clean=True)
-    assert out["extension_loaded"] is False
-    _, _, before = _passes(cards["frames"]["2"]["path"])
-    _, _, after = _passes(out["path"])
-    assert np.abs(after - before).max() <= 1e-6
+    _assert_reopens_identically(python, cards, work)
 
 
 # --------------------------------------------------------------------------------------
