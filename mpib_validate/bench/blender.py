@@ -415,12 +415,18 @@ def _largest_radius(sc) -> float:
 KEYS = ("seconds", "psnr", "psnr_ob", "ssim", "ssim_ob")
 
 
-def _summarise(result) -> dict:
-    rows = result["rows"]
-    table = mean_table(rows, "blender", KEYS)
+def _by_scene(rows) -> dict:
+    """``{scene: {method: row}}`` of the suite's rows."""
     by = {}
     for r in rows:
         by.setdefault(r["scene"], {})[r["method"]] = r
+    return by
+
+
+def _summarise(result) -> dict:
+    rows = result["rows"]
+    table = mean_table(rows, "blender", KEYS)
+    by = _by_scene(rows)
     margins = {s: g[DEFAULT]["psnr_ob"] - g[NODE]["psnr_ob"] for s, g in by.items()
                if DEFAULT in g and NODE in g}
     heads = []
@@ -497,9 +503,7 @@ LAYERED_HARD_KINDS = ("fence", "veil", "bokeh")
 def layered_table(result) -> list[dict]:
     """Per scene and focus with a layered row: groups, PSNR_ob of the layered path, the
     single-pass default and the Defocus node, the margins, and the render-cost ratios."""
-    by = {}
-    for r in result["rows"]:
-        by.setdefault(r["scene"], {})[r["method"]] = r
+    by = _by_scene(result["rows"])
     info = {s["scene"]: s for s in result["scenes"]}
     out = []
     for scene, g in by.items():
@@ -522,9 +526,7 @@ def layered_table(result) -> list[dict]:
 def degraded_table(result) -> list[dict]:
     """Per scene and focus: PSNR_ob of the default preset on the exact and the degraded
     depth (refinement off, guided) and of the Defocus node on both."""
-    by = {}
-    for r in result["rows"]:
-        by.setdefault(r["scene"], {})[r["method"]] = r
+    by = _by_scene(result["rows"])
     out = []
     for scene, g in by.items():
         if DEGRADED not in g or DEFAULT not in g:
@@ -563,9 +565,7 @@ def _markdown(result) -> str:
               "| default (EXR as written) | default, normalised | exact MPI | draft | best "
               "| truth noise floor | default - node |",
               "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    by = {}
-    for r in result["rows"]:
-        by.setdefault(r["scene"], {})[r["method"]] = r
+    by = _by_scene(result["rows"])
     info = {s["scene"]: s for s in result["scenes"]}
     for scene, g in by.items():
         def v(name):
