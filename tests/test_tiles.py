@@ -71,6 +71,45 @@ def test_tiled_composite_matches_untiled_dense(smooth_mpi):
     assert any(p is not None for p in plans)
 
 
+def test_reduced_resolution_blur_on_tiles_matches_the_whole_box(smooth_mpi):
+    """The reduced path's coarse cells lie on the canvas grid, so blurring a band on
+    output tiles reads the same cells as blurring its box: float32 rounding only (as
+    above). reduce_above=4 sends every layer past 4 px of radius (up to 12 px here)
+    through it, with s = 2 and 3; the phase of a 64 px tile on a grid of 3 px varies."""
+    mpi, A, d_f = smooth_mpi
+    settings = C.CompositeSettings(reduce_above=4.0)
+    radii = [abs(A * (l.disparity - d_f)) for l in mpi.layers]
+    assert max(radii) > 8.0  # s = 3 occurs
+    tiled_out = C.composite(mpi, A, d_f, settings)
+    plain_out = C.composite(_dense_copy(mpi), A, d_f,
+                            C.CompositeSettings(reduce_above=4.0, tiles=False))
+    peak = float(np.abs(plain_out).max())
+    np.testing.assert_allclose(tiled_out, plain_out, rtol=0, atol=1e-5 * peak)
+    plans = []
+    for l, r in zip(mpi.layers, radii):
+        if r > 4.0:
+            parts = list(C._blur_parts(l, A * (l.disparity - d_f), (0, mpi.height, 0, mpi.width),
+                                       mpi.canvas_shape, settings))
+            plans.append(len(parts))
+    assert max(plans) > 1  # some reduced layer was blurred on tiles
+
+
+def test_reduced_blur_is_the_same_at_any_box_origin():
+    """One coarse grid for the canvas: a pixel's reduced blur does not depend on where
+    the box that computes it starts (boxes offset by 0..s-1 px agree to rounding)."""
+    rng = np.random.default_rng(4)
+    rgba = np.zeros((96, 96, 4), np.float32)
+    rgba[30:60, 20:70, :3] = rng.random((30, 50, 3))
+    rgba[30:60, 20:70, 3] = 1.0
+    layer = M.Layer(0.5, rgba, 0, 0)
+    settings = C.CompositeSettings(reduce_above=5.0)
+    rho = 14.0  # s = 3
+    ref = C._blur_layer(layer, rho, (10, 90, 5, 90), (96, 96), settings)
+    for dy in range(3):
+        out = C._blur_layer(layer, rho, (10 + dy, 90, 5 + 2 * dy, 90), (96, 96), settings)
+        np.testing.assert_allclose(out, ref[dy:, 2 * dy:], rtol=0, atol=1e-6)
+
+
 def test_tiled_composite_matches_with_replication_at_the_edges():
     """Content touching the frame edge is replicated past it; a tile near the edge
     must read the same replicated window as the whole box does."""

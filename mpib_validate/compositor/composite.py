@@ -32,8 +32,10 @@ Fast paths, all optional and each checked against the plain path in the tests:
 - ``crop=True``: each layer is blurred only over its content box grown by its kernel
   radius (empty planes are never stored, see :mod:`mpib_validate.layers.mpi`);
 - ``reduce_above=R``: a layer whose radius exceeds ``R`` px is blurred at
-  ``1/s`` resolution (``s = ceil(r / R)``, area-averaged down, bilinear up), with the
-  disk shrunk so that the blur's second moment is preserved.
+  ``1/s`` resolution (``s = ceil(r / R)``, area-averaged down over the canvas's grid
+  of ``s x s`` cells, bilinear up), with the disk shrunk so that the blur's second
+  moment is preserved; like the full-resolution blur, only on the output tiles that
+  its content reaches (the same result as over the whole box, up to rounding).
 
 Image borders: a layer whose content reaches the canvas edge is continued past it by
 replication (the official padding); content beyond the canvas is otherwise zero.
@@ -156,7 +158,8 @@ def _reduced_kernel(rho: float, s: int, settings, cell):
     return _layer_kernel(math.copysign(math.sqrt(r2), rho) / s, settings, cell)
 
 
-def _correlate(padded: np.ndarray, kernel: np.ndarray, settings: CompositeSettings) -> np.ndarray:
+def _correlate(padded: np.ndarray, kernel: np.ndarray, settings: CompositeSettings,
+               peak=None) -> np.ndarray:
     if settings.backend != "numpy" and kernel.shape != (1, 1):
         from mpib_validate.compositor.backend import notify, resolve
 
@@ -171,30 +174,59 @@ def _correlate(padded: np.ndarray, kernel: np.ndarray, settings: CompositeSettin
         if be.notice and not getattr(_correlate, "_told", False):
             notify(be)
             _correlate._told = True
-    return _k.correlate(padded, kernel, settings.conv)
+    return _k.correlate(padded, kernel, settings.conv, peak)
 
 
-def _blur_reduced(padded: np.ndarray, pad: int, h: int, w: int, s: int, kc, settings) -> np.ndarray:
-    """Blur at 1/s resolution: area-average down, correlate with ``kc``, bilinear up.
+def _coarse_grid(y0: int, h: int, s: int, Rc: int) -> tuple[int, int]:
+    """``(c0, n)``: the first canvas row and the number of the coarse cells that the
+    reduced blur of output rows ``[y0, y0 + h)`` reads. The cells lie on the canvas grid
+    (cell ``k`` covers canvas rows ``[k s, (k + 1) s)``), so every output pixel gets the
+    same value whatever box or tile it is computed in; they reach ``Rc + 1`` cells beyond
+    the output (the coarse kernel and the bilinear interpolation)."""
+    first = y0 // s - (Rc + 1)
+    last = -(-(y0 + h) // s) + Rc + 1  # exclusive
+    return first * s, last - first
 
-    ``padded`` holds the output box grown by ``pad = (Rc + 2) s`` on every side, which
-    covers every coarse cell that the coarse kernel (radius ``Rc``) and the bilinear
-    interpolation read.
-    """
+
+def _downsample(fine: np.ndarray, s: int) -> np.ndarray:
+    """Area average of ``(h s, w s, C)`` over ``s x s`` cells: float32 ``(h, w, C)``."""
+    hc, wc, C = fine.shape[0] // s, fine.shape[1] // s, fine.shape[2]
+    # sum the s rows of each cell (contiguous adds), then its s columns
+    rows = fine.reshape(hc, s, wc * s, C).sum(axis=1, dtype=np.float64)
+    return (rows.reshape(hc, wc, s, C).sum(axis=2) / (s * s)).astype(np.float32)
+
+
+def _upsample_axis(y0: int, h: int, s: int, Rc: int) -> np.ndarray:
+    """Positions of output rows ``[y0, y0 + h)`` (pixel centres) in units of the
+    blurred coarse cells (centres at integers; blurred cell 0 is coarse cell ``Rc``)."""
+    c0, _ = _coarse_grid(y0, h, s, Rc)
+    return (np.arange(y0, y0 + h) + 0.5 - c0) / s - 0.5 - Rc
+
+
+def _blur_reduced(layer: Layer, canvas, rects, s: int, kc, settings: CompositeSettings,
+                  peak=None):
+    """Blur at 1/s resolution over equally sized canvas rectangles: area-average down on
+    the canvas-aligned coarse grid (:func:`_coarse_grid`), correlate with ``kc`` (all
+    rectangles in one batch), bilinear up. Yields ``(rect, blurred)``; each output pixel
+    is the same whichever rectangle holds it (up to the FFT's rounding)."""
     Rc = _k.kernel_radius(kc)
-    Hc = -(-h // s) + 2 * Rc + 2
-    Wc = -(-w // s) + 2 * Rc + 2
-    f0 = pad - (Rc + 1) * s  # coarse cell k covers rows [f0 + k s, f0 + (k + 1) s)
-    fine = padded[f0:f0 + Hc * s, f0:f0 + Wc * s]
-    C = padded.shape[2]
-    # area average: sum the s rows of each cell (contiguous adds), then its s columns
-    rows = fine.reshape(Hc, s, Wc * s, C).sum(axis=1, dtype=np.float64)
-    coarse = (rows.reshape(Hc, Wc, s, C).sum(axis=2) / (s * s)).astype(np.float32)
-    blurred = _correlate(coarse, kc, settings)  # coarse cells Rc .. Hc - Rc - 1
-    # fine output pixel centre in units of blurred cells (cell centres at integers)
-    ty = (np.arange(h) + 0.5 + pad - f0) / s - 0.5 - Rc
-    tx = (np.arange(w) + 0.5 + pad - f0) / s - 0.5 - Rc
-    return _bilinear_separable(blurred, ty, tx)
+    h, w = rects[0][1] - rects[0][0], rects[0][3] - rects[0][2]
+    # a rectangle's cell count depends on its phase on the grid: take the largest
+    nh, nw = -(-h // s) + 2 * Rc + 3, -(-w // s) + 2 * Rc + 3
+    C = layer.shape[2]
+    coarse = np.zeros((len(rects), nh, nw, C), np.float32)
+    for j, (y0, y1, x0, x1) in enumerate(rects):
+        cy, _ = _coarse_grid(y0, h, s, Rc)
+        cx, _ = _coarse_grid(x0, w, s, Rc)
+        fine = _padded_region(layer, canvas, (cy, cy + nh * s, cx, cx + nw * s), 0)
+        coarse[j] = _downsample(fine, s)
+    if settings.backend != "numpy" or len(rects) == 1:
+        blurred = [_correlate(c, kc, settings, peak) for c in coarse]
+    else:
+        blurred = _k.correlate_batch(coarse, kc, settings.conv, peak)
+    for (y0, y1, x0, x1), b in zip(rects, blurred):
+        ty, tx = _upsample_axis(y0, h, s, Rc), _upsample_axis(x0, w, s, Rc)
+        yield (y0, y1, x0, x1), _bilinear_separable(b, ty, tx)
 
 
 def _bilinear_separable(a: np.ndarray, ty: np.ndarray, tx: np.ndarray) -> np.ndarray:
@@ -215,6 +247,13 @@ def _bilinear_separable(a: np.ndarray, ty: np.ndarray, tx: np.ndarray) -> np.nda
     return np.ascontiguousarray(axis_lerp(axis_lerp(a, ty, 0), tx, 1), dtype=np.float32)
 
 
+def _reduction(rho: float, settings: CompositeSettings) -> int:
+    """The reduced path's factor ``s = ceil(|rho| / reduce_above)`` (1: full resolution)."""
+    if settings.reduce_above is None or not abs(rho) > settings.reduce_above:
+        return 1
+    return int(math.ceil(abs(rho) / settings.reduce_above))
+
+
 def _reach(rho: float, settings: CompositeSettings) -> int:
     """How far (px) a layer's blur reaches beyond its content: the kernel radius
     ``ceil(|rho|) + 1``, plus ``2 s`` for the reduced path's down/up sampling."""
@@ -226,11 +265,9 @@ def _reach(rho: float, settings: CompositeSettings) -> int:
 
 def _blur_layer(layer: Layer, rho: float, box, canvas, settings: CompositeSettings, cell=None):
     if settings.reduce_above is not None and abs(rho) > settings.reduce_above:
-        s = int(math.ceil(abs(rho) / settings.reduce_above))
+        s = _reduction(rho, settings)
         kc = _reduced_kernel(rho, s, settings, cell)
-        pad = (_k.kernel_radius(kc) + 2) * s
-        padded = _padded_region(layer, canvas, box, pad)
-        return _blur_reduced(padded, pad, box[1] - box[0], box[3] - box[2], s, kc, settings)
+        return next(_blur_reduced(layer, canvas, [tuple(box)], s, kc, settings))[1]
     k = _layer_kernel(rho, settings, cell)
     return _correlate(_padded_region(layer, canvas, box, _k.kernel_radius(k)), k, settings)
 
@@ -328,8 +365,10 @@ def _blur_parts(layer: Layer, rho: float, box, canvas, settings: CompositeSettin
     same correlation of the same window as untiled, with the same FFT noise floor
     (the layer's channel peaks): only rounding differs (an FFT of another size).
     Otherwise the box is one part."""
-    reduced = settings.reduce_above is not None and abs(rho) > settings.reduce_above
-    if not settings.crop or settings.backend != "numpy" or reduced:
+    if _reduction(rho, settings) > 1:
+        yield from _blur_parts_reduced(layer, rho, box, canvas, settings, cell)
+        return
+    if not settings.crop or settings.backend != "numpy":
         yield box, _clamp(_blur_layer(layer, rho, box, canvas, settings, cell))
         return
     k = _layer_kernel(rho, settings, cell)
@@ -342,7 +381,8 @@ def _blur_parts(layer: Layer, rho: float, box, canvas, settings: CompositeSettin
             layer._memo[key] = _tile_plan(layer, R, k.size, box, canvas)
         plan = layer._memo[key]
     if plan is None:
-        yield box, _clamp(_correlate(_padded_region(layer, canvas, box, R), k, settings))
+        yield box, _clamp(_correlate(_padded_region(layer, canvas, box, R), k, settings,
+                                     _layer_peaks(layer)))
         return
     T, ty, tx = plan
     peak = _layer_peaks(layer)
@@ -366,6 +406,42 @@ def _blur_parts(layer: Layer, rho: float, box, canvas, settings: CompositeSettin
             c = (max(y0, by0), min(y1, by1), max(x0, bx0), min(x1, bx1))
             if c[0] < c[1] and c[2] < c[3]:
                 yield c, b[c[0] - y0:c[1] - y0, c[2] - x0:c[3] - x0]
+
+
+def _blur_parts_reduced(layer: Layer, rho: float, box, canvas, settings: CompositeSettings,
+                        cell=None):
+    """:func:`_blur_parts` for a layer blurred at reduced resolution
+    (:func:`_blur_reduced`): with ``crop``, ``tiles`` and the numpy backend, on the output
+    tiles whose window holds content (:func:`_tile_plan`, costed at full resolution: the
+    reduction divides every alternative's cost alike), in batches; else the box. The
+    coarse grid is the canvas's, so tiled and untiled agree up to rounding."""
+    s = _reduction(rho, settings)
+    kc = _reduced_kernel(rho, s, settings, cell)
+    Rc = _k.kernel_radius(kc)
+    plan = None
+    if settings.crop and settings.tiles and settings.backend == "numpy" and kc.size > 1:
+        pad = (Rc + 2) * s  # how far (fine px) a tile's coarse window reads beyond it
+        key = ("tile plan", pad, kc.size, tuple(box), tuple(canvas), s)
+        if key not in layer._memo:
+            layer._memo[key] = _tile_plan(layer, pad, kc.size, box, canvas)
+        plan = layer._memo[key]
+    if plan is None:
+        for rect, blurred in _blur_reduced(layer, canvas, [tuple(box)], s, kc, settings):
+            yield rect, _clamp(blurred)
+        return
+    T, ty, tx = plan
+    peak = _layer_peaks(layer)
+    by0, by1, bx0, bx1 = box
+    side = _k.fft_size(-(-T // s) + 2 * Rc + 3)
+    per = max(1, _k.BATCH_BYTES // (4 * side * side * layer.shape[2]))
+    for a in range(0, ty.size, per):
+        rects = [(y * T, y * T + T, x * T, x * T + T) for y, x in zip(ty[a:a + per],
+                                                                      tx[a:a + per])]
+        for (y0, y1, x0, x1), b in _blur_reduced(layer, canvas, rects, s, kc, settings,
+                                                  peak):
+            c = (max(y0, by0), min(y1, by1), max(x0, bx0), min(x1, bx1))
+            if c[0] < c[1] and c[2] < c[3]:
+                yield c, _clamp(b[c[0] - y0:c[1] - y0, c[2] - x0:c[3] - x0])
 
 
 def composite(mpi: MPI, blur_parameter: float, focus_disparity: float,

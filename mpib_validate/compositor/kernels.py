@@ -424,7 +424,9 @@ def _channel_peaks(a: np.ndarray) -> np.ndarray:
                      for c in range(a.shape[-1])])
 
 
-def correlate_fft(padded: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+def correlate_fft(padded: np.ndarray, kernel: np.ndarray, peak=None) -> np.ndarray:
+    """Valid-mode correlation by FFT (``FFT_DTYPE``). ``peak``: the per-channel largest
+    magnitude that sets the noise floor cleared (default: that of ``padded``)."""
     from scipy import fft
 
     R = kernel_radius(kernel)
@@ -438,9 +440,15 @@ def correlate_fft(padded: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     full = fft.irfft2(spec, s=sh, axes=(0, 1), workers=-1)
     out = np.ascontiguousarray(full[2 * R:H, 2 * R:W], dtype=np.float32)
     # clear rounding noise relative to each channel's largest input magnitude
-    peak = _channel_peaks(padded)
-    out[np.abs(out) < FFT_FLOOR * peak] = 0.0
-    np.maximum(out, 0.0, out=out)
+    clear_below_floor(out, _channel_peaks(padded) if peak is None else peak)
+    return out
+
+
+def clear_below_floor(out: np.ndarray, peak) -> np.ndarray:
+    """In place: every value of channel ``c`` below ``FFT_FLOOR * peak[c]`` (the FFT's
+    rounding noise, and every negative value) becomes 0; the rest is kept."""
+    floor = (FFT_FLOOR * np.asarray(peak, np.float64)).astype(np.float32)
+    np.copyto(out, 0.0, where=out < floor)
     return out
 
 
@@ -510,8 +518,7 @@ def correlate_batch(windows: np.ndarray, kernel: np.ndarray, method: str = "auto
         full = fft.irfft2(spec, s=sh, axes=(1, 2), workers=-1)
         out[a:a + per] = full[:, 2 * R:Hw, 2 * R:Ww]
     # |v| below the floor -> 0, then v >= 0: in one pass, v below the floor -> 0
-    out[out < FFT_FLOOR * np.asarray(peak, np.float64)] = 0.0
-    return out
+    return clear_below_floor(out, peak)
 
 
 #: Cost of the float32 FFT path per padded pixel, in units of one direct tap per
@@ -533,15 +540,17 @@ def fft_is_cheaper(h: int, w: int, kernel: np.ndarray) -> bool:
     return kernel.size > fft_cost((h + kernel.shape[0]) * (w + kernel.shape[1]))
 
 
-def correlate(padded: np.ndarray, kernel: np.ndarray, method: str = "auto") -> np.ndarray:
-    """Valid-mode correlation of a padded ``(H, W, C)`` array with ``kernel``."""
+def correlate(padded: np.ndarray, kernel: np.ndarray, method: str = "auto",
+              peak=None) -> np.ndarray:
+    """Valid-mode correlation of a padded ``(H, W, C)`` array with ``kernel``. ``peak``:
+    the FFT's noise floor scale (:func:`correlate_fft`)."""
     if kernel.shape == (1, 1):
         return np.array(padded * np.float32(kernel[0, 0]), dtype=np.float32)
     if method == "auto":
         h, w = padded.shape[0] - kernel.shape[0] + 1, padded.shape[1] - kernel.shape[1] + 1
         method = "fft" if fft_is_cheaper(h, w, kernel) else "direct"
     if method == "fft":
-        return correlate_fft(padded, kernel)
+        return correlate_fft(padded, kernel, peak)
     if method == "direct":
         return correlate_direct(padded, kernel)
     raise ValueError(f"unknown convolution method {method!r}; use auto, direct or fft")
