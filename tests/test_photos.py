@@ -90,6 +90,21 @@ def test_refinement_moves_a_blurred_edge_back_onto_the_colour_edge():
     assert np.all(np.abs(ref[rows, 32:] - 0.1) <= tol)
 
 
+def test_refinement_changes_only_its_uncertain_band():
+    """The loss decomposition of the photos suite gives the exact disparity back on
+    `uncertain_band`; that is where the refinement acts, and nowhere else."""
+    from mpib_validate.layers.refine import uncertain_band
+
+    colour, D = _two_regions()
+    A = 40.0
+    pred = degrade_disparity(D, 3)
+    ref = refine_disparity(colour, pred, A)
+    band = uncertain_band(pred, A)
+    assert band.any() and not band.all()
+    np.testing.assert_array_equal(ref[~band], pred[~band])
+    assert (ref[band] != pred[band]).mean() > 0.5  # it does act there
+
+
 def test_refinement_leaves_a_smooth_surface_alone():
     """A tilted plane spanning less than jump_px over the window is not an edge."""
     colour, _ = _two_regions()
@@ -120,9 +135,12 @@ def test_photos_suite_on_one_tiny_scene_per_family(tmp_path):
     for m in ("default exact + guided", "default degraded + guided-thin",
               "default exact + guided-thin"):
         assert m in methods
+    for m in photos.ORACLES.values():
+        assert m in methods
     for row in r["rows"]:
         assert math.isfinite(row["psnr"]) and math.isfinite(row["psnr_ob"])
     assert (tmp_path / "photos.md").read_text().count("| default degraded |") == 2
+    assert (tmp_path / "photos.md").read_text().count("where the degraded depth loses") == 2
     assert (tmp_path / "photos.json").stat().st_size > 0
 
 
@@ -137,6 +155,54 @@ def test_refinement_on_tiles_equals_the_whole_image(monkeypatch):
     small = refine_disparity(colour, pred, 40.0)
     monkeypatch.setattr(refine, "TILE", 128)
     np.testing.assert_array_equal(small, refine_disparity(colour, pred, 40.0))
+
+
+def test_side_values_on_boxes_equal_the_whole_image(monkeypatch):
+    """The side values (the nearest pixel outside the band on each side) are computed on
+    the boxes of the band's tiles grown by twice their reach; two objects far apart make
+    two boxes that do not cover the image, and one tile the size of the image one box:
+    the same disparity, bit for bit."""
+    from mpib_validate.layers import refine
+
+    rng = np.random.default_rng(5)
+    size = 224
+    colour = np.empty((size, size, 3))
+    colour[:] = (0.1, 0.2, 0.5)
+    D = np.full((size, size), 0.1) + 0.0004 * np.arange(size)[None, :]  # a slanted wall
+    for y, x in ((20, 20), (150, 160)):  # two near squares, one of them slanted too
+        colour[y:y + 50, x:x + 50] = (0.6, 0.15, 0.1)
+        D[y:y + 50, x:x + 50] = 0.5 + 0.001 * np.arange(50)[:, None]
+    colour *= 1.0 + 0.01 * rng.standard_normal(colour.shape)
+    pred = degrade_disparity(D, 1)
+    boxes = list(refine._boxes(refine.uncertain_band(pred, 40.0), refine.TILE))
+    assert len(boxes) == 2
+    small = refine_disparity(colour, pred, 40.0)
+    monkeypatch.setattr(refine, "TILE", 256)
+    np.testing.assert_array_equal(small, refine_disparity(colour, pred, 40.0))
+
+
+def test_side_values_reach_outside_the_band_tiles():
+    """A band that fills its tiles exactly (columns 32-63): the nearest pixels outside it
+    lie in the neighbouring tiles, which the box's margin must hold; the boxed result
+    equals the whole image's."""
+    from mpib_validate.layers import refine
+
+    H, W = 64, 128
+    x = np.arange(W)[None, :] * np.ones((H, 1))
+    D = np.where(x < 48, 0.5 + 0.001 * x, 0.1)  # a slanted near side, a flat far side
+    band = (x >= 32) & (x < 64)
+    hi = np.full((H, W), D.max())
+    lo = np.full((H, W), D.min())
+    boxed = refine._outside_sides(D, band, hi, lo, 18)
+    whole = refine._outside_sides_box(D, band, hi, lo, 18)
+    for b, w in zip(boxed, whole):
+        np.testing.assert_array_equal(b[band], w[band])
+    # the near side continues with the slanted wall's value at the band's edge (x = 31)
+    # within the reach of 18 px; beyond it, the window's maximum
+    reached = band & (x <= 31 + 18)
+    np.testing.assert_allclose(boxed[0][reached], 0.5 + 0.001 * 31)
+    np.testing.assert_array_equal(boxed[0][band & ~reached], hi[band & ~reached])
+    np.testing.assert_array_equal(boxed[1][band], 0.1)  # the far side: the flat 0.1
 
 
 def test_refocus_takes_the_refine_option():
