@@ -181,6 +181,22 @@ def test_side_values_on_boxes_equal_the_whole_image(monkeypatch):
     np.testing.assert_array_equal(small, refine_disparity(colour, pred, 40.0))
 
 
+def test_refinement_in_small_blocks_equals_large_ones(monkeypatch):
+    """A large photograph's edge boxes are cut into blocks (refine.BLOCK_PX) to bound the
+    working memory; blocks of 64 px, each with its own margin, give the disparity of
+    blocks larger than the image, bit for bit."""
+    from mpib_validate.layers import refine
+
+    colour, D = _two_regions(size=160, edge=70)
+    pred = degrade_disparity(D, 4)
+    monkeypatch.setattr(refine, "BLOCK_PX", 64)
+    assert len(list(refine._boxes(refine.uncertain_band(pred, 40.0), refine.TILE))) > 1
+    small = refine_disparity(colour, pred, 40.0)
+    monkeypatch.setattr(refine, "BLOCK_PX", 4096)
+    assert len(list(refine._boxes(refine.uncertain_band(pred, 40.0), refine.TILE))) == 1
+    np.testing.assert_array_equal(small, refine_disparity(colour, pred, 40.0))
+
+
 def test_side_values_reach_outside_the_band_tiles():
     """A band that fills its tiles exactly (columns 32-63): the nearest pixels outside it
     lie in the neighbouring tiles, which the box's margin must hold; the boxed result

@@ -261,10 +261,20 @@ def uncertain_band(disparity: np.ndarray, blur_parameter: float, radius: int = 6
 TILE = 32
 
 
-def _boxes(mask: np.ndarray, tile: int):
+#: Largest side (px, a multiple of :data:`TILE`) of a box that the guided filter and the
+#: side values run on: a box of a large photograph's edges is cut into blocks of at most
+#: this side, each with its own margin, so that their working memory (about 350 bytes
+#: per pixel of a box with its margin, measured) stays near 100 MB whatever the image
+#: size; the result does not depend on the cut.
+BLOCK_PX = 512
+
+
+def _boxes(mask: np.ndarray, tile: int, block: int | None = None):
     """Boxes ``(y0, y1, x0, x1)`` covering ``mask``: the bounding boxes of the connected
     groups of ``tile x tile`` tiles that hold a True pixel (so the guided filter runs
-    near the edges only; its result is the same as on the whole image)."""
+    near the edges only; its result is the same as on the whole image), each cut into
+    blocks of at most ``block`` px a side (default :data:`BLOCK_PX`; only the blocks
+    that hold a True tile)."""
     from scipy import ndimage
 
     H, W = mask.shape
@@ -273,6 +283,10 @@ def _boxes(mask: np.ndarray, tile: int):
     padded[:H, :W] = mask
     coarse = padded.reshape(th, tile, tw, tile).any(axis=(1, 3))
     labels, _ = ndimage.label(coarse, structure=np.ones((3, 3), bool))
+    step = max(1, (BLOCK_PX if block is None else block) // tile)  # tiles per block side
     for sl in ndimage.find_objects(labels):
-        yield (sl[0].start * tile, min(H, sl[0].stop * tile),
-               sl[1].start * tile, min(W, sl[1].stop * tile))
+        for ty in range(sl[0].start, sl[0].stop, step):
+            for tx in range(sl[1].start, sl[1].stop, step):
+                ty1, tx1 = min(ty + step, sl[0].stop), min(tx + step, sl[1].stop)
+                if coarse[ty:ty1, tx:tx1].any():
+                    yield (ty * tile, min(H, ty1 * tile), tx * tile, min(W, tx1 * tile))
