@@ -207,7 +207,8 @@ def _outside_sides(D, band, hi, lo, reach):
     margin = 2 * int(np.ceil(reach))
     H, W = D.shape
     for (y0, y1, x0, x1) in _boxes(band, TILE):
-        Y0, Y1, X0, X1 = max(0, y0 - margin), min(H, y1 + margin), max(0, x0 - margin), min(W, x1 + margin)
+        Y0, Y1 = max(0, y0 - margin), min(H, y1 + margin)
+        X0, X1 = max(0, x0 - margin), min(W, x1 + margin)
         sub = (slice(Y0, Y1), slice(X0, X1))
         inner = (slice(y0 - Y0, y1 - Y0), slice(x0 - X0, x1 - X0))
         h, l = _outside_sides_box(D[sub], band[sub], hi[sub], lo[sub], reach)
