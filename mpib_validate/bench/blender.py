@@ -77,6 +77,7 @@ NODE = "blender-defocus-node"
 GROUP = "mpib-node-group (compositor)"
 DEGRADED = "default, degraded depth"
 DEGRADED_GUIDED = "default, degraded depth + guided"
+DEGRADED_THIN = "default, degraded depth + guided-thin"
 NODE_DEGRADED = "Defocus node, degraded depth"
 
 
@@ -166,8 +167,8 @@ def degraded_seed(sc) -> int:
 
 
 def degraded_images(sc, passes, A: float, d_f: float) -> dict:
-    """The default preset on a degraded disparity (refinement off and guided) and the
-    Defocus node on the same degraded depth (when bpy is there)."""
+    """The default preset on a degraded disparity (refinement off, guided and
+    guided-thin) and the Defocus node on the same degraded depth (when bpy is there)."""
     import importlib.util
 
     from mpib_validate.bench.photos import disparity_to_depth
@@ -181,7 +182,8 @@ def degraded_images(sc, passes, A: float, d_f: float) -> dict:
     depth_g = disparity_to_depth(Dg)
     pg = replace(passes, depth=depth_g, disparity=Dg)
     out = {}
-    for name, refine in ((DEGRADED, None), (DEGRADED_GUIDED, "guided")):
+    for name, refine in ((DEGRADED, None), (DEGRADED_GUIDED, "guided"),
+                         (DEGRADED_THIN, "guided-thin")):
         res, seconds = _timed(lambda: refocus(pg, A, d_f, "default", refine=refine))
         out[name] = (premultiplied(res.image), seconds)
     if importlib.util.find_spec("bpy") is not None:
@@ -465,7 +467,7 @@ def _summarise(result) -> dict:
     deg = degraded_table(result)
     if deg:
         mean = {k: float(np.mean([r[k] for r in deg])) for k in
-                ("exact", "degraded", "guided", "node_degraded")}
+                ("exact", "degraded", "guided", "thin", "node_degraded")}
         margin = np.array([r["guided"] - r["node_degraded"] for r in deg])
         heads.append(
             f"Blender scenes with a degraded depth (a monocular estimator's errors, as the "
@@ -474,7 +476,8 @@ def _summarise(result) -> dict:
             f"{mean['exact']:.1f} dB from the exact depth ({mean['guided'] - mean['exact']:+.1f} "
             f"dB) and {mean['node_degraded']:.1f} dB for the Defocus node on the same degraded "
             f"depth ({margin.mean():+.1f} dB; the refined default wins {int((margin > 0).sum())} "
-            f"of {len(margin)}, worst {margin.min():+.1f} dB).")
+            f"of {len(margin)}, worst {margin.min():+.1f} dB); with guided-thin "
+            f"{mean['thin']:.1f} dB.")
     g = {r["method"]: r for r in table}
     if DEFAULT in g and "exact-mpi" in g:
         heads.append(f"Blender scenes: the same MPI rendered exactly reaches PSNR_ob "
@@ -533,6 +536,7 @@ def degraded_table(result) -> list[dict]:
             continue
         out.append({"scene": scene, "exact": g[DEFAULT]["psnr_ob"],
                     "degraded": g[DEGRADED]["psnr_ob"], "guided": g[DEGRADED_GUIDED]["psnr_ob"],
+                    "thin": g[DEGRADED_THIN]["psnr_ob"] if DEGRADED_THIN in g else math.nan,
                     "node_exact": g[NODE]["psnr_ob"] if NODE in g else math.nan,
                     "node_degraded": (g[NODE_DEGRADED]["psnr_ob"] if NODE_DEGRADED in g
                                       else math.nan)})
@@ -605,13 +609,14 @@ def _markdown(result) -> str:
                   "bilinear up, 2 % multiplicative noise per low-resolution pixel, a 1.5 px "
                   "shift; seeded per scene). The exact depth's scores are the bound.", "",
                   "| scene | default, exact | default, degraded | default, degraded + guided "
-                  "| Defocus node, exact | Defocus node, degraded | guided - node (degraded) |",
-                  "|---|---|---|---|---|---|---|"]
+                  "| default, degraded + guided-thin | Defocus node, exact "
+                  "| Defocus node, degraded | guided - node (degraded) |",
+                  "|---|---|---|---|---|---|---|---|"]
         for r in deg:
             lines.append(f"| {r['scene']} | {_fmt(r['exact'])} | {_fmt(r['degraded'])} | "
-                         f"{_fmt(r['guided'])} | {_fmt(r['node_exact'])} | "
+                         f"{_fmt(r['guided'])} | {_fmt(r['thin'])} | {_fmt(r['node_exact'])} | "
                          f"{_fmt(r['node_degraded'])} | {r['guided'] - r['node_degraded']:+.2f} |")
-        keys = ("exact", "degraded", "guided", "node_exact", "node_degraded")
+        keys = ("exact", "degraded", "guided", "thin", "node_exact", "node_degraded")
         mean = {k: float(np.mean([r[k] for r in deg])) for k in keys}
         lines.append(f"| mean | " + " | ".join(_fmt(mean[k]) for k in keys) +
                      f" | {mean['guided'] - mean['node_degraded']:+.2f} |")
