@@ -102,11 +102,16 @@ def test_reduced_blur_is_the_same_at_any_box_origin():
     rgba[30:60, 20:70, :3] = rng.random((30, 50, 3))
     rgba[30:60, 20:70, 3] = 1.0
     layer = M.Layer(0.5, rgba, 0, 0)
-    settings = C.CompositeSettings(reduce_above=5.0)
+    settings = C.CompositeSettings(reduce_above=5.0, tiles=False)  # one part: the box
     rho = 14.0  # s = 3
-    ref = C._blur_layer(layer, rho, (10, 90, 5, 90), (96, 96), settings)
+
+    def blur(box):
+        (part,) = C._blur_parts(layer, rho, box, (96, 96), settings)
+        return part[1]
+
+    ref = blur((10, 90, 5, 90))
     for dy in range(3):
-        out = C._blur_layer(layer, rho, (10 + dy, 90, 5 + 2 * dy, 90), (96, 96), settings)
+        out = blur((10 + dy, 90, 5 + 2 * dy, 90))
         np.testing.assert_allclose(out, ref[dy:, 2 * dy:], rtol=0, atol=1e-6)
 
 

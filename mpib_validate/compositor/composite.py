@@ -257,17 +257,12 @@ def _reduction(rho: float, settings: CompositeSettings) -> int:
 def _reach(rho: float, settings: CompositeSettings) -> int:
     """How far (px) a layer's blur reaches beyond its content: the kernel radius
     ``ceil(|rho|) + 1``, plus ``2 s`` for the reduced path's down/up sampling."""
-    r = int(math.ceil(abs(rho))) + 1
-    if settings.reduce_above is not None and abs(rho) > settings.reduce_above:
-        r += 2 * int(math.ceil(abs(rho) / settings.reduce_above))
-    return r
+    s = _reduction(rho, settings)
+    return int(math.ceil(abs(rho))) + 1 + (2 * s if s > 1 else 0)
 
 
 def _blur_layer(layer: Layer, rho: float, box, canvas, settings: CompositeSettings, cell=None):
-    if settings.reduce_above is not None and abs(rho) > settings.reduce_above:
-        s = _reduction(rho, settings)
-        kc = _reduced_kernel(rho, s, settings, cell)
-        return next(_blur_reduced(layer, canvas, [tuple(box)], s, kc, settings))[1]
+    """The layer blurred at full resolution over ``box`` (one window)."""
     k = _layer_kernel(rho, settings, cell)
     return _correlate(_padded_region(layer, canvas, box, _k.kernel_radius(k)), k, settings)
 
@@ -373,20 +368,13 @@ def _blur_parts(layer: Layer, rho: float, box, canvas, settings: CompositeSettin
         return
     k = _layer_kernel(rho, settings, cell)
     R = _k.kernel_radius(k)
-    plan = None
-    if k.size > 1 and settings.tiles:
-        # the k x k sub-aperture passes ask again for the same layer, radius and box
-        key = ("tile plan", R, k.size, tuple(box), tuple(canvas))
-        if key not in layer._memo:
-            layer._memo[key] = _tile_plan(layer, R, k.size, box, canvas)
-        plan = layer._memo[key]
+    plan = _kept_plan(layer, R, k.size, box, canvas) if k.size > 1 and settings.tiles else None
     if plan is None:
         yield box, _clamp(_correlate(_padded_region(layer, canvas, box, R), k, settings,
                                      _layer_peaks(layer)))
         return
-    T, ty, tx = plan
+    T = plan[0]
     peak = _layer_peaks(layer)
-    by0, by1, bx0, bx1 = box
     Hw = T + 2 * R  # a window: the tile grown by the kernel radius
     method = settings.conv
     if method == "auto":
@@ -394,18 +382,40 @@ def _blur_parts(layer: Layer, rho: float, box, canvas, settings: CompositeSettin
     # FFT windows are written straight into arrays of the transform's size (zero past
     # the window), which the transform would otherwise pad with a copy
     side = _k.fft_size(Hw) if method == "fft" else Hw
-    per = max(1, _k.BATCH_BYTES // (4 * side * side * layer.shape[2]))
-    for a in range(0, ty.size, per):
-        rects = [(y * T, y * T + T, x * T, x * T + T) for y, x in zip(ty[a:a + per],
-                                                                      tx[a:a + per])]
+    for rects in _tile_batches(plan, side, layer.shape[2]):
         windows = np.zeros((len(rects), side, side, layer.shape[2]), np.float32)
         for j, r in enumerate(rects):
             _padded_region(layer, canvas, r, R, windows[j, :Hw, :Hw])
         blurred = _clamp(_k.correlate_batch(windows, k, method, peak, window=(Hw, Hw)))
-        for (y0, y1, x0, x1), b in zip(rects, blurred):
-            c = (max(y0, by0), min(y1, by1), max(x0, bx0), min(x1, bx1))
-            if c[0] < c[1] and c[2] < c[3]:
-                yield c, b[c[0] - y0:c[1] - y0, c[2] - x0:c[3] - x0]
+        yield from _clipped(zip(rects, blurred), box)
+
+
+def _kept_plan(layer: Layer, reach: int, taps: int, box, canvas, s: int = 1):
+    """:func:`_tile_plan`, kept with the layer: the k x k sub-aperture passes and a focus
+    pull ask again for the same layer, reach and box."""
+    key = ("tile plan", reach, taps, tuple(box), tuple(canvas), s)
+    if key not in layer._memo:
+        layer._memo[key] = _tile_plan(layer, reach, taps, box, canvas)
+    return layer._memo[key]
+
+
+def _tile_batches(plan, side: int, channels: int):
+    """The plan's output tiles as canvas rectangles, in batches whose windows (``side``
+    px square) fill at most :data:`kernels.BATCH_BYTES`."""
+    T, ty, tx = plan
+    per = max(1, _k.BATCH_BYTES // (4 * side * side * channels))
+    for a in range(0, ty.size, per):
+        yield [(y * T, y * T + T, x * T, x * T + T)
+               for y, x in zip(ty[a:a + per], tx[a:a + per])]
+
+
+def _clipped(parts, box):
+    """``(rect, blurred)`` parts cut to ``box`` (those that overlap it)."""
+    by0, by1, bx0, bx1 = box
+    for (y0, y1, x0, x1), b in parts:
+        c = (max(y0, by0), min(y1, by1), max(x0, bx0), min(x1, bx1))
+        if c[0] < c[1] and c[2] < c[3]:
+            yield c, b[c[0] - y0:c[1] - y0, c[2] - x0:c[3] - x0]
 
 
 def _blur_parts_reduced(layer: Layer, rho: float, box, canvas, settings: CompositeSettings,
@@ -420,28 +430,17 @@ def _blur_parts_reduced(layer: Layer, rho: float, box, canvas, settings: Composi
     Rc = _k.kernel_radius(kc)
     plan = None
     if settings.crop and settings.tiles and settings.backend == "numpy" and kc.size > 1:
-        pad = (Rc + 2) * s  # how far (fine px) a tile's coarse window reads beyond it
-        key = ("tile plan", pad, kc.size, tuple(box), tuple(canvas), s)
-        if key not in layer._memo:
-            layer._memo[key] = _tile_plan(layer, pad, kc.size, box, canvas)
-        plan = layer._memo[key]
+        # (Rc + 2) s: how far (fine px) a tile's coarse window reads beyond it
+        plan = _kept_plan(layer, (Rc + 2) * s, kc.size, box, canvas, s)
     if plan is None:
         for rect, blurred in _blur_reduced(layer, canvas, [tuple(box)], s, kc, settings):
             yield rect, _clamp(blurred)
         return
-    T, ty, tx = plan
     peak = _layer_peaks(layer)
-    by0, by1, bx0, bx1 = box
-    side = _k.fft_size(-(-T // s) + 2 * Rc + 3)
-    per = max(1, _k.BATCH_BYTES // (4 * side * side * layer.shape[2]))
-    for a in range(0, ty.size, per):
-        rects = [(y * T, y * T + T, x * T, x * T + T) for y, x in zip(ty[a:a + per],
-                                                                      tx[a:a + per])]
-        for (y0, y1, x0, x1), b in _blur_reduced(layer, canvas, rects, s, kc, settings,
-                                                  peak):
-            c = (max(y0, by0), min(y1, by1), max(x0, bx0), min(x1, bx1))
-            if c[0] < c[1] and c[2] < c[3]:
-                yield c, _clamp(b[c[0] - y0:c[1] - y0, c[2] - x0:c[3] - x0])
+    side = _k.fft_size(-(-plan[0] // s) + 2 * Rc + 3)
+    for rects in _tile_batches(plan, side, layer.shape[2]):
+        for c, b in _clipped(_blur_reduced(layer, canvas, rects, s, kc, settings, peak), box):
+            yield c, _clamp(b)
 
 
 def composite(mpi: MPI, blur_parameter: float, focus_disparity: float,

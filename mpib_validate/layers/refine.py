@@ -204,16 +204,9 @@ def _outside_sides(D, band, hi, lo, reach):
     ``2 reach``, which hold every pixel that the answer depends on (up to ties between
     equidistant pixels)."""
     hi_side, lo_side = hi.copy(), lo.copy()
-    margin = 2 * int(np.ceil(reach))
-    H, W = D.shape
-    for (y0, y1, x0, x1) in _boxes(band, TILE):
-        Y0, Y1 = max(0, y0 - margin), min(H, y1 + margin)
-        X0, X1 = max(0, x0 - margin), min(W, x1 + margin)
-        sub = (slice(Y0, Y1), slice(X0, X1))
-        inner = (slice(y0 - Y0, y1 - Y0), slice(x0 - X0, x1 - X0))
+    for out, sub, inner in _blocks(band, 2 * int(np.ceil(reach))):
         h, l = _outside_sides_box(D[sub], band[sub], hi[sub], lo[sub], reach)
-        hi_side[y0:y1, x0:x1] = h[inner]
-        lo_side[y0:y1, x0:x1] = l[inner]
+        hi_side[out], lo_side[out] = h[inner], l[inner]
     return hi_side, lo_side
 
 
@@ -270,12 +263,23 @@ TILE = 32
 BLOCK_PX = 512
 
 
-def _boxes(mask: np.ndarray, tile: int, block: int | None = None):
+def _blocks(mask: np.ndarray, margin: int):
+    """``(out, sub, inner)`` slice pairs for each of :func:`_boxes` of ``mask``: the box
+    in the image, the box grown by ``margin`` (clipped to the image) that a computation
+    reads, and the box inside that grown box."""
+    H, W = mask.shape
+    for (y0, y1, x0, x1) in _boxes(mask, TILE):
+        Y0, Y1 = max(0, y0 - margin), min(H, y1 + margin)
+        X0, X1 = max(0, x0 - margin), min(W, x1 + margin)
+        yield ((slice(y0, y1), slice(x0, x1)), (slice(Y0, Y1), slice(X0, X1)),
+               (slice(y0 - Y0, y1 - Y0), slice(x0 - X0, x1 - X0)))
+
+
+def _boxes(mask: np.ndarray, tile: int):
     """Boxes ``(y0, y1, x0, x1)`` covering ``mask``: the bounding boxes of the connected
     groups of ``tile x tile`` tiles that hold a True pixel (so the guided filter runs
     near the edges only; its result is the same as on the whole image), each cut into
-    blocks of at most ``block`` px a side (default :data:`BLOCK_PX`; only the blocks
-    that hold a True tile)."""
+    blocks of at most :data:`BLOCK_PX` a side (only the blocks that hold a True tile)."""
     from scipy import ndimage
 
     H, W = mask.shape
@@ -284,7 +288,7 @@ def _boxes(mask: np.ndarray, tile: int, block: int | None = None):
     padded[:H, :W] = mask
     coarse = padded.reshape(th, tile, tw, tile).any(axis=(1, 3))
     labels, _ = ndimage.label(coarse, structure=np.ones((3, 3), bool))
-    step = max(1, (BLOCK_PX if block is None else block) // tile)  # tiles per block side
+    step = max(1, BLOCK_PX // tile)  # tiles per block side
     for sl in ndimage.find_objects(labels):
         for ty in range(sl[0].start, sl[0].stop, step):
             for tx in range(sl[1].start, sl[1].stop, step):
