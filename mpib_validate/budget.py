@@ -21,11 +21,12 @@ Refocusing (:func:`refocus_estimate`) follows what ``passes.layers_from_passes``
   at most 256 x 256 per image and grown by the occlusion reach ``A (d_near - d_far)``
   of the 4-neighbour depth jumps in them (the hidden-background fill, which adds the
   block grown by its reach to a tiled plane);
-- compositing: one layer at a time, padded by its kernel radius
-  ``R = ceil(A |d - d_f|) + 1`` and blurred by a float32 FFT of its four channels (a
-  tiled layer: in batches of windows, :data:`TILED_BLUR_BYTES`), with up to two blurred
-  outputs held ahead (the compositor's worker thread), plus the kernel, the
-  accumulators and the kernel cache;
+- compositing: each layer padded by its kernel radius ``R = ceil(A |d - d_f|) + 1``
+  and blurred by a float32 FFT of its four channels (a tiled layer: in batches of
+  windows, :data:`TILED_BLUR_BYTES` each), on up to ``composite.blur_threads()``
+  threads at once (counted as that many of the largest blur), with
+  :data:`HELD_OUTPUTS` more blurred outputs waiting for their "over", plus the kernel,
+  the accumulators and the kernel cache;
 - the per-pixel working sets of the layer builder and of the output writers.
 
 The byte counts per pixel are measured (``tests/test_budget.py`` checks the estimate
@@ -65,14 +66,15 @@ CUT_SMOOTH_BYTES_PER_PX = 40
 #: Bytes per padded pixel of one layer's FFT blur (float32 input, the complex64 half
 #: spectrum of four channels, its float32 inverse and the output: 4 x 16 B).
 FFT_BYTES_PER_PX = 64
-#: Blurred outputs (16 B/px) held besides the one being computed: the compositor's
-#: worker thread runs up to ``composite.PREFETCH_PARTS`` parts ahead.
+#: Blurred outputs (16 B/px) held besides those being computed: the one being laid
+#: and ``composite.HELD_JOBS`` finished ahead of it.
 HELD_OUTPUTS = 2
-#: Working set of blurring a layer stored as tiles: the compositor blurs its windows in
-#: batches of :data:`mpib_validate.compositor.kernels.BATCH_BYTES` of float32 windows
-#: (the windows at the transform's size, spectrum, inverse and result: about four times
-#: that), plus the batches held ahead, whatever the layer's box.
-TILED_BLUR_BYTES = (4 + HELD_OUTPUTS) * (32 << 20)
+#: Working set of one blur job of a layer stored as tiles: a batch of
+#: :data:`mpib_validate.compositor.kernels.BATCH_BYTES` of float32 windows (the windows
+#: at the transform's size, spectrum, inverse and result: about four times that),
+#: whatever the layer's box; a held output of one is at most a batch.
+TILED_BLUR_BYTES = 4 * (32 << 20)
+TILED_OUTPUT_BYTES = 32 << 20
 #: Bytes per pixel of writing the result (premultiplied copy, EXR channels, sRGB PNG).
 WRITE_BYTES_PER_PX = 110
 #: Bytes per pixel of the inputs kept during the work (colour float32, depth and
@@ -411,14 +413,25 @@ MAX_PLANES_PLACED = 1_000_000
 PLANE_BYTES = 200
 
 
-def _blur_bytes(h: int, w: int, rho: float, H: int, W: int, composite) -> tuple[int, int]:
-    """Working set of blurring one layer whose content box is ``h x w``, and the bytes
-    of its kernel."""
+def _concurrent(works: list, threads: int) -> int:
+    """The most working memory ``threads`` blurs may hold at once: the compositor runs
+    the layers' jobs in order, so the largest sum over ``threads`` consecutive layers
+    (a tiled layer's own batches are counted in its ``works`` entry)."""
+    if not works:
+        return 0
+    k = min(threads, len(works))
+    c = np.concatenate([[0], np.cumsum(np.asarray(works, np.float64))])
+    return int(max(float((c[k:] - c[:-k]).max()), max(works)))
+
+
+def _blur_bytes(h: int, w: int, rho: float, H: int, W: int, composite) -> tuple[int, int, int]:
+    """Working set of blurring one layer whose content box is ``h x w`` (its own output
+    included), the bytes of its output, and those of its kernel."""
     r = min(abs(rho), _RADIUS_CAP)
     R = int(math.ceil(r)) + 1
     oh, ow = min(h + 2 * R, H), min(w + 2 * R, W)
     if r < 0.5 / 1024:
-        return 16 * oh * ow, 0
+        return 16 * oh * ow, 16 * oh * ow, 0
     taps = (2 * R + 1) ** 2
     if composite.reduce_above is not None and r > composite.reduce_above:
         s = int(math.ceil(r / composite.reduce_above))
@@ -427,21 +440,25 @@ def _blur_bytes(h: int, w: int, rho: float, H: int, W: int, composite) -> tuple[
         ph, pw = oh + 2 * pad, ow + 2 * pad
         ch, cw = -(-oh // s) + 2 * Rc + 2, -(-ow // s) + 2 * Rc + 2
         work = (16 * ph * pw + 32 * ph * pw // s
-                + FFT_BYTES_PER_PX * _fast_len(ch) * _fast_len(cw) + 48 * oh * ow)
-        return work, 9 * (2 * Rc + 1) ** 2
-    work = (FFT_BYTES_PER_PX * _fast_len(oh + 2 * R) * _fast_len(ow + 2 * R)
-            + 16 * (1 + HELD_OUTPUTS) * oh * ow)
-    return work, 9 * taps
+                + FFT_BYTES_PER_PX * _fast_len(ch) * _fast_len(cw) + 16 * oh * ow)
+        return work, 16 * oh * ow, 9 * (2 * Rc + 1) ** 2
+    work = FFT_BYTES_PER_PX * _fast_len(oh + 2 * R) * _fast_len(ow + 2 * R) + 16 * oh * ow
+    return work, 16 * oh * ow, 9 * taps
 
 
 def refocus_estimate(disparity: np.ndarray, blur_parameter: float, focus_disparity: float,
-                     preset: str = "default", background: bool = False) -> Estimate:
+                     preset: str = "default", background: bool = False,
+                     threads: int | None = None) -> Estimate:
     """Estimated peak memory of ``refocus.refocus`` on a disparity map (1/scene-unit,
     0 = infinitely far) with the blur parameter ``A`` (px per unit disparity), focus
-    ``d_f`` and a preset's settings. Costs a few passes over the disparity."""
+    ``d_f`` and a preset's settings, blurring on ``threads`` threads (default: as many
+    as the compositor uses here, ``composite.blur_threads()``). Costs a few passes over
+    the disparity."""
+    from mpib_validate.compositor.composite import blur_threads
     from mpib_validate.compositor.kernels import KERNEL_CACHE_BYTES
     from mpib_validate.presets import get_preset
 
+    threads = blur_threads() if threads is None else max(1, int(threads))
     D = np.asarray(disparity, np.float64)
     H, W = D.shape
     A = float(blur_parameter)
@@ -465,15 +482,18 @@ def refocus_estimate(disparity: np.ndarray, blur_parameter: float, focus_dispari
         layers = int(16 * np.sum(tiled)
                      ) + PLANE_BYTES * n_planes
         as_tiles = tiled < hs.astype(np.float64) * ws
-    blur = kern = 0
+    works, held, kern = [], 0, 0
     kernels_total = 0
     for h, w, r, t in zip(hs, ws, rho, as_tiles):
         if h == 0:
             continue
-        work, kb = _blur_bytes(int(h), int(w), float(r), H, W, p.composite)
+        work, out, kb = _blur_bytes(int(h), int(w), float(r), H, W, p.composite)
         if t and p.composite.tiles and p.composite.crop:
-            work = min(work, TILED_BLUR_BYTES)
-        blur = max(blur, work)
+            # batches of one layer may run on every thread at once
+            work = min(work, threads * TILED_BLUR_BYTES)
+            out = min(out, TILED_OUTPUT_BYTES)
+        works.append(work + kb)
+        held = max(held, out)
         kern = max(kern, kb)
         kernels_total += kb
     acc = 32 * px if p.subapertures == 1 else 64 * px
@@ -489,13 +509,13 @@ def refocus_estimate(disparity: np.ndarray, blur_parameter: float, focus_dispari
         "inputs": (INPUT_BYTES_PER_PX + (16 if background else 0)) * px,
         "layers": layers,
         "layer building": int(max(edges_phase, cut)),
-        "blur of one layer": blur + kern,
+        "blurs": _concurrent(works, threads) + HELD_OUTPUTS * held,
         "kernel cache": min(KERNEL_CACHE_BYTES, kernels_total),
         "accumulators": acc,
         "writing": WRITE_BYTES_PER_PX * px,
     }
     phases = (edges_phase, cut + layers,
-              layers + parts["blur of one layer"] + parts["kernel cache"] + acc,
+              layers + parts["blurs"] + parts["kernel cache"] + acc,
               parts["writing"] + 16 * px)
     return Estimate(f"refocusing {W}x{H} ({preset})", parts, planes=int(n_planes),
                     largest_radius_px=largest, peak=parts["inputs"] + max(phases))

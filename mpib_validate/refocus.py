@@ -413,7 +413,12 @@ def render_built(built: BuiltMPI, blur_parameter: float, focus_disparity: float,
     img = render_subapertures(built.mpi, blur_parameter, focus_disparity, p.subapertures,
                               settings, progress=progress)
     covered = img[..., 3] > 0
-    alpha = covered.astype(np.float32) if built.opaque else np.where(covered, img[..., 4], 0.0)
+    if built.opaque:  # alpha 1 where covered: the colour itself there, 0 elsewhere
+        out = np.empty(img.shape[:2] + (4,), np.float32)
+        np.multiply(img[..., :4], covered[..., None], out=out)  # one contiguous pass
+        out[..., 3] = covered
+        return out
+    alpha = np.where(covered, img[..., 4], 0.0)
     out = np.zeros(img.shape[:2] + (4,), np.float32)
     # straight colour: the normalised (premultiplied) colour over the normalised alpha
     np.divide(img[..., :3], alpha[..., None], out=out[..., :3], where=alpha[..., None] > 0)

@@ -160,7 +160,7 @@ def file_stamps(paths) -> tuple:
 
 def mpi_bytes(mpi: MPI | None) -> int:
     """Bytes the layers of an MPI hold."""
-    return 0 if mpi is None else int(sum(l.rgba.nbytes for l in mpi.layers))
+    return 0 if mpi is None else int(sum(l.nbytes for l in mpi.layers))
 
 
 class RefocusSession:

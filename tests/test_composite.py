@@ -368,3 +368,34 @@ def test_an_error_in_the_blur_thread_reaches_the_caller_and_no_thread_is_left():
     with pytest.raises(Stop):
         C.composite(mpi, 20.0, 0.4, FAST, progress=progress)
     assert threading.active_count() == before
+
+
+def test_the_blur_threads_change_nothing(monkeypatch):
+    """The layers' blur jobs run on several threads (composite._OrderedPool) and are
+    laid in their order: the composite equals the one-thread composite to the bit, on
+    layers that overlap everywhere (an "over" out of order would change it) and on an
+    MPI of additive slabs from passes (group sums and the chain)."""
+    from mpib_validate.layers.passes import PassesSettings, layers_from_passes
+
+    rng = np.random.default_rng(11)
+    dense = _random_mpi(rng, 10, 150, 210, list(np.linspace(0.1, 0.9, 10)))
+    v, u = np.mgrid[0:120, 0:160]
+    D = 0.2 + 0.6 * (u / 160.0) + 0.2 * (v > 60)
+    colour = rng.random((120, 160, 3)).astype(np.float32)
+    passes, _ = layers_from_passes(colour, D, 30.0, PassesSettings(split="additive"))
+    cases = [(dense, 40.0, 0.45, FAST),
+             (passes, 30.0, 0.5, CompositeSettings(chain_px=1.5))]
+    for mpi, A, d_f, settings in cases:
+        m = mpi.margin
+        frame = (m, m + mpi.height, m, m + mpi.width)
+        jobs = [k for k, _, _ in C._layer_parts(mpi.layers, A, d_f, settings, None,
+                                                mpi.canvas_shape, frame, True)]
+        assert jobs.count("parts") > 4  # more jobs than threads: several run at once
+        monkeypatch.setattr(C, "MAX_BLUR_THREADS", 1)
+        one = C.composite(mpi, A, d_f, settings)
+        monkeypatch.setattr(C, "MAX_BLUR_THREADS", 4)
+        monkeypatch.setattr(C, "_cores", lambda: 4)
+        assert C.blur_threads() == 4
+        many = C.composite(mpi, A, d_f, settings)
+        monkeypatch.undo()
+        assert np.array_equal(one, many)

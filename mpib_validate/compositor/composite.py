@@ -45,7 +45,10 @@ tracer (with cards larger than the frame) is the ground truth at the borders.
 
 from __future__ import annotations
 
+import collections
+import functools
 import math
+import os
 import time
 from dataclasses import dataclass, replace
 
@@ -350,31 +353,40 @@ def _straight_max(layer: Layer) -> np.ndarray:
 
 def _blur_parts(layer: Layer, rho: float, box, canvas, settings: CompositeSettings, cell=None):
     """The blurred layer over ``box`` as ``(rect, blurred)`` parts, canvas rectangles
-    (y0, y1, x0, x1) inside ``box``; the layer's blur is zero elsewhere.
+    (y0, y1, x0, x1) inside ``box``; the layer's blur is zero elsewhere: the parts of
+    :func:`_blur_jobs`, run one after another."""
+    for job in _blur_jobs(layer, rho, box, canvas, settings, cell):
+        yield from job()
+
+
+def _blur_jobs(layer: Layer, rho: float, box, canvas, settings: CompositeSettings, cell=None):
+    """The blur of the layer over ``box`` as independent jobs: callables, each returning
+    a list of ``(rect, blurred)`` parts (canvas rectangles inside ``box``, disjoint);
+    any thread may run them, in any order.
 
     With ``crop`` and the numpy backend at full resolution, the box may be cut into
     square output tiles (:func:`_tile_plan`: the side that costs least, or none); a tile
     whose input window (the tile grown by the kernel radius) holds no content of the
     layer is skipped, and the kept windows are blurred in batches
-    (:func:`mpib_validate.compositor.kernels.correlate_batch`). Each output pixel is the
-    same correlation of the same window as untiled, with the same FFT noise floor
-    (the layer's channel peaks): only rounding differs (an FFT of another size).
-    Otherwise the box is one part."""
+    (:func:`mpib_validate.compositor.kernels.correlate_batch`), one job each. Each
+    output pixel is the same correlation of the same window as untiled, with the same
+    FFT noise floor (the layer's channel peaks): only rounding differs (an FFT of
+    another size). Otherwise the box is one job of one part."""
     if _reduction(rho, settings) > 1:
-        yield from _blur_parts_reduced(layer, rho, box, canvas, settings, cell)
+        yield from _blur_jobs_reduced(layer, rho, box, canvas, settings, cell)
         return
     if not settings.crop or settings.backend != "numpy":
-        yield box, _clamp(_blur_layer(layer, rho, box, canvas, settings, cell))
+        yield lambda: [(box, _clamp(_blur_layer(layer, rho, box, canvas, settings, cell)))]
         return
     k = _layer_kernel(rho, settings, cell)
     R = _k.kernel_radius(k)
     plan = _kept_plan(layer, R, k.size, box, canvas) if k.size > 1 and settings.tiles else None
+    peak = _layer_peaks(layer)
     if plan is None:
-        yield box, _clamp(_correlate(_padded_region(layer, canvas, box, R), k, settings,
-                                     _layer_peaks(layer)))
+        yield lambda: [(box, _clamp(_correlate(_padded_region(layer, canvas, box, R), k,
+                                               settings, peak)))]
         return
     T = plan[0]
-    peak = _layer_peaks(layer)
     Hw = T + 2 * R  # a window: the tile grown by the kernel radius
     method = settings.conv
     if method == "auto":
@@ -382,12 +394,16 @@ def _blur_parts(layer: Layer, rho: float, box, canvas, settings: CompositeSettin
     # FFT windows are written straight into arrays of the transform's size (zero past
     # the window), which the transform would otherwise pad with a copy
     side = _k.fft_size(Hw) if method == "fft" else Hw
-    for rects in _tile_batches(plan, side, layer.shape[2]):
+
+    def batch(rects):
         windows = np.zeros((len(rects), side, side, layer.shape[2]), np.float32)
         for j, r in enumerate(rects):
             _padded_region(layer, canvas, r, R, windows[j, :Hw, :Hw])
         blurred = _clamp(_k.correlate_batch(windows, k, method, peak, window=(Hw, Hw)))
-        yield from _clipped(zip(rects, blurred), box)
+        return list(_clipped(zip(rects, blurred), box))
+
+    for rects in _tile_batches(plan, side, layer.shape[2]):
+        yield functools.partial(batch, rects)
 
 
 def _kept_plan(layer: Layer, reach: int, taps: int, box, canvas, s: int = 1):
@@ -418,13 +434,13 @@ def _clipped(parts, box):
             yield c, b[c[0] - y0:c[1] - y0, c[2] - x0:c[3] - x0]
 
 
-def _blur_parts_reduced(layer: Layer, rho: float, box, canvas, settings: CompositeSettings,
-                        cell=None):
-    """:func:`_blur_parts` for a layer blurred at reduced resolution
+def _blur_jobs_reduced(layer: Layer, rho: float, box, canvas, settings: CompositeSettings,
+                       cell=None):
+    """:func:`_blur_jobs` for a layer blurred at reduced resolution
     (:func:`_blur_reduced`): with ``crop``, ``tiles`` and the numpy backend, on the output
     tiles whose window holds content (:func:`_tile_plan`, costed at full resolution: the
-    reduction divides every alternative's cost alike), in batches; else the box. The
-    coarse grid is the canvas's, so tiled and untiled agree up to rounding."""
+    reduction divides every alternative's cost alike), a job per batch; else the box.
+    The coarse grid is the canvas's, so tiled and untiled agree up to rounding."""
     s = _reduction(rho, settings)
     kc = _reduced_kernel(rho, s, settings, cell)
     Rc = _k.kernel_radius(kc)
@@ -433,14 +449,18 @@ def _blur_parts_reduced(layer: Layer, rho: float, box, canvas, settings: Composi
         # (Rc + 2) s: how far (fine px) a tile's coarse window reads beyond it
         plan = _kept_plan(layer, (Rc + 2) * s, kc.size, box, canvas, s)
     if plan is None:
-        for rect, blurred in _blur_reduced(layer, canvas, [tuple(box)], s, kc, settings):
-            yield rect, _clamp(blurred)
+        yield lambda: [(rect, _clamp(blurred)) for rect, blurred in
+                       _blur_reduced(layer, canvas, [tuple(box)], s, kc, settings)]
         return
     peak = _layer_peaks(layer)
     side = _k.fft_size(-(-plan[0] // s) + 2 * Rc + 3)
+
+    def batch(rects):
+        return [(c, _clamp(b)) for c, b in
+                _clipped(_blur_reduced(layer, canvas, rects, s, kc, settings, peak), box)]
+
     for rects in _tile_batches(plan, side, layer.shape[2]):
-        for c, b in _clipped(_blur_reduced(layer, canvas, rects, s, kc, settings, peak), box):
-            yield c, _clamp(b)
+        yield functools.partial(batch, rects)
 
 
 def composite(mpi: MPI, blur_parameter: float, focus_disparity: float,
@@ -470,10 +490,11 @@ def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
     """Eq. 1 before the division: ``(acc, cmax)``, the composited premultiplied colour
     with the normaliser in channel 3 (``(H, W, C)`` float32), and the colour bound.
 
-    The layers' blurs (:func:`_layer_parts`) run on a worker thread, at most
-    :data:`PREFETCH_PARTS` blurred parts ahead of the "over" steps on the caller's
-    thread (scipy's FFTs and numpy's array operations release the GIL, so the two
-    overlap on two cores; the result is the same, computed in the same order)."""
+    The layers' blurs (:func:`_layer_parts`: independent jobs) run on
+    :func:`blur_threads` worker threads, at most :data:`HELD_JOBS` finished jobs ahead
+    of the "over" steps on the caller's thread (scipy's FFTs and numpy's array
+    operations release the GIL, so they overlap on the cores; the result is the same
+    to the bit, laid in the same order)."""
     if not blur_parameter > 0 or not math.isfinite(blur_parameter):
         raise ValueError(f"blur parameter A must be finite and > 0, got {blur_parameter}")
     H, W, m = mpi.height, mpi.width, mpi.margin
@@ -496,14 +517,13 @@ def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
         else:
             chain.push(acc, group_sum, group_tiles, group_id)
 
-    with _Prefetch(jobs, PREFETCH_PARTS) as items:
-        for item in items:
-            if item[0] == "layer":  # far to near
-                _, i, straight_max = item
+    with _OrderedPool(jobs, blur_threads(), HELD_JOBS) as items:
+        for kind, i, result in items:
+            if kind == "layer":  # far to near
                 if progress is not None:
                     progress(i / max(len(layers), 1))
-                if straight_max is not None:
-                    cmax = np.maximum(cmax, straight_max)
+                if result is not None:
+                    cmax = np.maximum(cmax, result)
                 layer = layers[i]
                 if layer.group is not None:
                     if group_tiles is not None and slab_of[i] != group_id:
@@ -515,16 +535,13 @@ def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
                         group_tiles = np.zeros((ny, nx), bool)
                     group_id = slab_of[i]
                 continue
-            _, (y0, y1, x0, x1), blurred = item
-            if layer.group is None:
-                region = acc[y0 - m:y1 - m, x0 - m:x1 - m]
-                # acc <- acc (1 - a_blur) + [c a]_blur   (premultiplied colour, and the normaliser)
-                region *= 1.0 - blurred[..., 3:4]
-                region += blurred
-                continue
-            # an additive group: sum its blurred shares, then lay the sum over acc
-            group_sum[y0 - m:y1 - m, x0 - m:x1 - m] += blurred
-            group_tiles[y0 // _TILE:-(-y1 // _TILE), x0 // _TILE:-(-x1 // _TILE)] = True
+            for (y0, y1, x0, x1), blurred in result:
+                if layer.group is None:
+                    _over(acc[y0 - m:y1 - m, x0 - m:x1 - m], blurred)
+                    continue
+                # an additive group: sum its blurred shares, then lay the sum over acc
+                group_sum[y0 - m:y1 - m, x0 - m:x1 - m] += blurred
+                group_tiles[y0 // _TILE:-(-y1 // _TILE), x0 // _TILE:-(-x1 // _TILE)] = True
     if group_tiles is not None:
         lay_slab()
     if chain is not None:
@@ -534,18 +551,34 @@ def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
     return acc, (cmax if mpi.colour_max is None else mpi.colour_max)
 
 
-#: Blurred parts the worker thread of :func:`_accumulate` may hold ahead of the "over"
-#: steps (each at most one batch of tiles, :data:`kernels.BATCH_BYTES` / 2 of float32,
-#: or one layer's box): the memory the overlap costs.
-PREFETCH_PARTS = 2
+def _cores() -> int:
+    """Cores available to the process."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def blur_threads() -> int:
+    """Threads that blur layers during a composite: one per core available to the
+    process, at most :data:`MAX_BLUR_THREADS`."""
+    return max(1, min(_cores(), MAX_BLUR_THREADS))
+
+
+#: Most threads blurring at once (each holds one job's working set,
+#: :data:`mpib_validate.budget.TILED_BLUR_BYTES`).
+MAX_BLUR_THREADS = 4
+#: Jobs done ahead of the "over" steps, beyond those running: their blurred parts are
+#: the memory the overlap costs besides the running jobs' working sets.
+HELD_JOBS = 1
 
 
 def _layer_parts(layers, blur_parameter, focus_disparity, settings, cell, canvas, frame,
                  need_cmax: bool):
-    """For each layer far to near: ``("layer", i, straight_max)`` (the largest straight
-    colour of the layer, for the safe division, or None), then its blurred parts
-    ``("part", rect, blurred)`` (:func:`_blur_parts`); a layer whose output box is
-    empty outside the frame has no parts."""
+    """For each layer far to near: ``("layer", i, job)``, whose job returns the largest
+    straight colour of the layer (for the safe division) or None, then its blur's jobs
+    ``("parts", job)`` (:func:`_blur_jobs`); a layer whose output box is empty outside
+    the frame has none."""
     m = frame[0]
     H, W = frame[1] - m, frame[3] - m
     for i, layer in enumerate(layers):
@@ -564,13 +597,50 @@ def _layer_parts(layers, blur_parameter, focus_disparity, settings, cell, canvas
             box = (y0, y1, x0, x1)
         else:
             box = frame
-        yield "layer", i, (_straight_max(layer) if need_cmax else None)
-        for rect, blurred in _blur_parts(layer, rho, box, canvas, settings, cell):
-            yield "part", rect, blurred
+        yield "layer", i, (functools.partial(_straight_max, layer) if need_cmax
+                           else _no_value)
+        for job in _blur_jobs(layer, rho, box, canvas, settings, cell):
+            yield "parts", None, job
+
+
+def _no_value():
+    return None
+
+
+class _OrderedPool:
+    """Run the jobs of a sequence of ``(kind, key, job)`` on ``threads`` worker threads
+    and give ``(kind, key, result)`` in the sequence's order, at most ``threads +
+    held`` jobs ahead of the consumer; an exception in a job is raised in the consumer
+    at its place. The sequence itself (the kernels and tile plans) is drawn on one
+    more thread (:class:`_Prefetch`), which submits the jobs. Leaving the ``with`` block
+    early (an exception in the consumer, e.g. a cancelling ``progress``) stops that
+    thread, drops the jobs not started and waits for the running ones, so no thread
+    outlives it. Each worker runs its FFTs on ``max(1, cores // threads)`` threads
+    (:func:`mpib_validate.compositor.kernels.set_fft_workers`)."""
+
+    def __init__(self, items, threads: int, held: int):
+        from concurrent.futures import ThreadPoolExecutor
+
+        self._items = items
+        self._pool = ThreadPoolExecutor(
+            threads, thread_name_prefix="mpib-blur", initializer=_k.set_fft_workers,
+            initargs=(max(1, _cores() // threads),))
+        # a job is submitted before the producer waits to queue it: one more is running
+        self._ahead = _Prefetch(((kind, key, self._pool.submit(job)) for kind, key, job
+                                 in items), max(1, threads + held - 1))
+
+    def __enter__(self):
+        return ((kind, key, future.result()) for kind, key, future in self._ahead.__enter__())
+
+    def __exit__(self, *exc):
+        self._ahead.__exit__(*exc)
+        self._pool.shutdown(wait=True, cancel_futures=True)
+        self._items.close()
+        return False
 
 
 class _Prefetch:
-    """Run a generator on a worker thread, at most ``depth`` items ahead of the
+    """Run a generator on a thread of its own, at most ``depth`` items ahead of the
     consumer; items come out in order, and an exception in the generator is raised in
     the consumer at its place. Leaving the ``with`` block early (an exception in the
     consumer, e.g. a cancelling ``progress``) stops the worker before returning."""
@@ -581,7 +651,7 @@ class _Prefetch:
 
         self._gen, self._queue = gen, queue.Queue(maxsize=depth)
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="mpib-blur", daemon=True)
+        self._thread = threading.Thread(target=self._run, name="mpib-blur-plan", daemon=True)
 
     def _run(self):
         try:
@@ -700,6 +770,19 @@ def _merge_within_slabs(layers, slab_of):
             out.append(Layer(first.disparity, rgba, y0, x0, first.group))
         slabs.append(key[0] if len(key) == 2 else None)
     return out, slabs
+
+
+def _over(region: np.ndarray, blurred: np.ndarray) -> None:
+    """``region <- region (1 - a_blur) + blurred`` in place (premultiplied colour and the
+    normaliser: Eq. 1's "over"). A strided region (a tile of the frame) is updated as a
+    contiguous copy: numpy broadcasts the ``(..., 1)`` factor over one about twice as
+    slowly, more than the two copies cost. Either way the same operations in the same
+    order, so the same result to the bit."""
+    work = region if region.flags.c_contiguous else region.copy()
+    work *= 1.0 - blurred[..., 3:4]
+    work += blurred
+    if work is not region:
+        region[...] = work
 
 
 def _over_group(acc, group_sum, box, m):

@@ -33,6 +33,7 @@ from __future__ import annotations
 import collections
 import functools
 import math
+import threading
 
 import numpy as np
 
@@ -417,6 +418,22 @@ def correlate_direct(padded: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     return out
 
 
+_fft_threads = threading.local()
+
+
+def fft_workers() -> int:
+    """Threads one FFT of this module may use on the calling thread: all cores (-1) by
+    default; :func:`set_fft_workers` lowers it on a thread that runs beside others (the
+    compositor's blur threads, each running its own transforms). The result does not
+    depend on it: the transforms split independent 1-D FFTs between threads."""
+    return getattr(_fft_threads, "workers", -1)
+
+
+def set_fft_workers(n: int) -> None:
+    """Set :func:`fft_workers` for the calling thread (``n >= 1``, or -1 for all cores)."""
+    _fft_threads.workers = int(n)
+
+
 def _channel_peaks(a: np.ndarray) -> np.ndarray:
     """Largest magnitude of each channel of ``(H, W, C)`` (a scalar reduction per
     channel: numpy reduces a strided channel several times faster than ``axis=(0, 1)``)."""
@@ -432,12 +449,12 @@ def correlate_fft(padded: np.ndarray, kernel: np.ndarray, peak=None) -> np.ndarr
     R = kernel_radius(kernel)
     H, W = padded.shape[:2]
     sh = (fft.next_fast_len(H, real=True), fft.next_fast_len(W, real=True))
-    spec = fft.rfft2(padded.astype(FFT_DTYPE, copy=False), s=sh, axes=(0, 1), workers=-1)
+    spec = fft.rfft2(padded.astype(FFT_DTYPE, copy=False), s=sh, axes=(0, 1), workers=fft_workers())
     # correlation = convolution with the flipped kernel; the kernel's [0, 0] tap lands
     # at the output offset 2R, which is where the "valid" region starts.
     kf = kernel_spectrum(kernel, sh)
     spec *= kf[..., None]
-    full = fft.irfft2(spec, s=sh, axes=(0, 1), workers=-1)
+    full = fft.irfft2(spec, s=sh, axes=(0, 1), workers=fft_workers())
     out = np.ascontiguousarray(full[2 * R:H, 2 * R:W], dtype=np.float32)
     # clear rounding noise relative to each channel's largest input magnitude
     clear_below_floor(out, _channel_peaks(padded) if peak is None else peak)
@@ -457,7 +474,7 @@ def kernel_spectrum(kernel: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     correlation is convolution with the flipped kernel."""
     from scipy import fft
 
-    return fft.rfft2(kernel[::-1, ::-1].astype(FFT_DTYPE), s=shape, workers=-1)
+    return fft.rfft2(kernel[::-1, ::-1].astype(FFT_DTYPE), s=shape, workers=fft_workers())
 
 
 #: Bytes of windows per batch of :func:`correlate_batch` (its spectrum takes
@@ -513,9 +530,9 @@ def correlate_batch(windows: np.ndarray, kernel: np.ndarray, method: str = "auto
     per = max(1, BATCH_BYTES // (np.dtype(FFT_DTYPE).itemsize * sh[0] * sh[1] * C))
     for a in range(0, n, per):
         spec = fft.rfft2(windows[a:a + per].astype(FFT_DTYPE, copy=False), s=sh,
-                         axes=(1, 2), workers=-1)
+                         axes=(1, 2), workers=fft_workers())
         spec *= kf
-        full = fft.irfft2(spec, s=sh, axes=(1, 2), workers=-1)
+        full = fft.irfft2(spec, s=sh, axes=(1, 2), workers=fft_workers())
         out[a:a + per] = full[:, 2 * R:Hw, 2 * R:Ww]
     # |v| below the floor -> 0, then v >= 0: in one pass, v below the floor -> 0
     return clear_below_floor(out, peak)
