@@ -45,7 +45,6 @@ tracer (with cards larger than the frame) is the ground truth at the borders.
 
 from __future__ import annotations
 
-import collections
 import functools
 import math
 import os
@@ -264,10 +263,10 @@ def _reach(rho: float, settings: CompositeSettings) -> int:
     return int(math.ceil(abs(rho))) + 1 + (2 * s if s > 1 else 0)
 
 
-def _blur_layer(layer: Layer, rho: float, box, canvas, settings: CompositeSettings, cell=None):
-    """The layer blurred at full resolution over ``box`` (one window)."""
-    k = _layer_kernel(rho, settings, cell)
-    return _correlate(_padded_region(layer, canvas, box, _k.kernel_radius(k)), k, settings)
+def _blur_layer(layer: Layer, box, canvas, kernel: np.ndarray, settings: CompositeSettings):
+    """The layer blurred at full resolution with ``kernel`` over ``box`` (one window)."""
+    return _correlate(_padded_region(layer, canvas, box, _k.kernel_radius(kernel)), kernel,
+                      settings)
 
 
 #: Side (px) of the canvas tiles on which the compositor records where a group was
@@ -375,10 +374,10 @@ def _blur_jobs(layer: Layer, rho: float, box, canvas, settings: CompositeSetting
     if _reduction(rho, settings) > 1:
         yield from _blur_jobs_reduced(layer, rho, box, canvas, settings, cell)
         return
+    k = _layer_kernel(rho, settings, cell)  # here, on the one thread that draws the jobs
     if not settings.crop or settings.backend != "numpy":
-        yield lambda: [(box, _clamp(_blur_layer(layer, rho, box, canvas, settings, cell)))]
+        yield lambda: [(box, _clamp(_blur_layer(layer, box, canvas, k, settings)))]
         return
-    k = _layer_kernel(rho, settings, cell)
     R = _k.kernel_radius(k)
     plan = _kept_plan(layer, R, k.size, box, canvas) if k.size > 1 and settings.tiles else None
     peak = _layer_peaks(layer)
@@ -491,7 +490,7 @@ def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
     with the normaliser in channel 3 (``(H, W, C)`` float32), and the colour bound.
 
     The layers' blurs (:func:`_layer_parts`: independent jobs) run on
-    :func:`blur_threads` worker threads, at most :data:`HELD_JOBS` finished jobs ahead
+    :func:`blur_threads` worker threads (one with a Dr.Jit backend), at most :data:`HELD_JOBS` finished jobs ahead
     of the "over" steps on the caller's thread (scipy's FFTs and numpy's array
     operations release the GIL, so they overlap on the cores; the result is the same
     to the bit, laid in the same order)."""
@@ -517,7 +516,9 @@ def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
         else:
             chain.push(acc, group_sum, group_tiles, group_id)
 
-    with _OrderedPool(jobs, blur_threads(), HELD_JOBS) as items:
+    # the Dr.Jit backends run their kernels from one thread
+    threads = blur_threads() if settings.backend == "numpy" else 1
+    with _OrderedPool(jobs, threads, HELD_JOBS) as items:
         for kind, i, result in items:
             if kind == "layer":  # far to near
                 if progress is not None:
@@ -577,8 +578,8 @@ def _layer_parts(layers, blur_parameter, focus_disparity, settings, cell, canvas
                  need_cmax: bool):
     """For each layer far to near: ``("layer", i, job)``, whose job returns the largest
     straight colour of the layer (for the safe division) or None, then its blur's jobs
-    ``("parts", job)`` (:func:`_blur_jobs`); a layer whose output box is empty outside
-    the frame has none."""
+    ``("parts", None, job)`` (:func:`_blur_jobs`); a layer whose output box is empty
+    outside the frame has none."""
     m = frame[0]
     H, W = frame[1] - m, frame[3] - m
     for i, layer in enumerate(layers):

@@ -181,20 +181,25 @@ KERNEL_CACHE_BYTES = 256 << 20
 _cache: "collections.OrderedDict" = collections.OrderedDict()
 
 
+_cache_lock = threading.Lock()  # callers may be on several threads
+
+
 def _disk_cached(radius_q: int, cell) -> np.ndarray:
     key = (radius_q, cell)
-    k = _cache.get(key)
-    if k is not None:
-        _cache.move_to_end(key)
-        return k
+    with _cache_lock:
+        k = _cache.get(key)
+        if k is not None:
+            _cache.move_to_end(key)
+            return k
     k = _disk_kernel(math.copysign(abs(radius_q) / 1024.0, radius_q), cell)
     k.setflags(write=False)
     if k.nbytes <= KERNEL_CACHE_BYTES:
-        _cache[key] = k
-        total = sum(v.nbytes for v in _cache.values())
-        while total > KERNEL_CACHE_BYTES:
-            _, old = _cache.popitem(last=False)
-            total -= old.nbytes
+        with _cache_lock:
+            _cache[key] = k
+            total = sum(v.nbytes for v in _cache.values())
+            while total > KERNEL_CACHE_BYTES:
+                _, old = _cache.popitem(last=False)
+                total -= old.nbytes
     return k
 
 
