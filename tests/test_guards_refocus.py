@@ -144,6 +144,8 @@ def test_plan_is_reported_before_the_work(tmp_path):
 @pytest.mark.parametrize("args, option", [
     (["--fstop", 2, "--focal-mm", 50, "--scene-unit-m", 0, "--focus-depth", 2], "--scene-unit-m"),
     (["--fstop", 2, "--focal-mm", 50, "--scene-unit-m", -1, "--focus-depth", 2], "--scene-unit-m"),
+    # a lens whose aperture R f_px underflows to 0 (found by tests/test_cli_fuzz.py)
+    (["--fstop", "1e308", "--focal-mm", 50, "--focus-depth", 2.5], "--fstop 1e+308"),
     ([*LENS, "--far-limit", "nan"], "--far-limit"),
     ([*LENS, "--far-limit", 0], "--far-limit"),
     (["--blur-parameter", 10, "--fstop", 2, "--focal-mm", 50, "--focus-depth", 2], "--blur-parameter"),

@@ -316,6 +316,12 @@ def resolve(header: HeaderCamera | None, given: dict, width: int, height: int, p
         # d_f below is 1/focus_distance, the very float blender_camera gives the add-on
         cam = blender_camera(**lens, width=width, height=height, focus_distance=1.0)
         A, f_px = cam.blur_parameter, cam.focal_length_px
+        if not (A > 0 and math.isfinite(A)):  # e.g. --fstop 1e308: R f_px underflows to 0
+            named = ", ".join(f"{sources[k]} {lens[k]}" if sources[k].startswith("--")
+                              else f"{k} {lens[k]} ({sources[k]})" for k in LENS_FIELDS
+                              if sources.get(k) not in (None, "default"))
+            raise CameraHeaderError(f"the lens ({named}) gives a blur parameter A = {A} px per "
+                                    f"unit disparity; it must be finite and > 0")
     elif "blur_parameter" in hi:
         A, sources["blur_parameter"] = hi["blur_parameter"], src
         f_px = hi.get("focal_length_px")
