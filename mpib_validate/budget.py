@@ -24,7 +24,7 @@ Refocusing (:func:`refocus_estimate`) follows what ``passes.layers_from_passes``
 - compositing: each layer padded by its kernel radius ``R = ceil(A |d - d_f|) + 1``
   and blurred by a float32 FFT of its four channels (a tiled layer: in batches of
   windows, :data:`TILED_BLUR_BYTES` each), on up to ``composite.blur_threads()``
-  threads at once (counted as that many of the largest blur), with
+  threads at once (counted as the largest sum over that many consecutive layers), with
   :data:`HELD_OUTPUTS` more blurred outputs waiting for their "over", plus the kernel,
   the accumulators and the kernel cache;
 - the per-pixel working sets of the layer builder and of the output writers.
@@ -74,7 +74,7 @@ HELD_OUTPUTS = 2
 #: at the transform's size, spectrum, inverse and result: about four times that),
 #: whatever the layer's box; a held output of one is at most a batch.
 TILED_BLUR_BYTES = 4 * (32 << 20)
-TILED_OUTPUT_BYTES = 32 << 20
+TILED_OUTPUT_BYTES = 32 << 20  # kernels.BATCH_BYTES (not imported: budget loads light)
 #: Bytes per pixel of writing the result (premultiplied copy, EXR channels, sRGB PNG).
 WRITE_BYTES_PER_PX = 110
 #: Bytes per pixel of the inputs kept during the work (colour float32, depth and

@@ -137,3 +137,12 @@ def test_sample_set_estimate():
     used = int(r.stdout)
     _, est = budget.samples_estimate("sobol", 1 << 20, 0)
     assert 0.7 < est / used < 1.6, (est, used)
+
+
+def test_tiled_blur_constants_follow_the_compositor_batch():
+    """budget does not import the compositor's kernels; its batch-sized constants must
+    still equal the batch the compositor uses."""
+    from mpib_validate.compositor import kernels
+
+    assert budget.TILED_OUTPUT_BYTES == kernels.BATCH_BYTES
+    assert budget.TILED_BLUR_BYTES == 4 * kernels.BATCH_BYTES
