@@ -144,6 +144,34 @@ def test_photos_suite_on_one_tiny_scene_per_family(tmp_path):
     assert (tmp_path / "photos.json").stat().st_size > 0
 
 
+def test_oracle_disparities_give_back_exact_values_on_their_region_only():
+    """The loss decomposition's disparities (photos and Blender suites): each equals the
+    exact disparity on its region (highlights: all-in-focus > 1 grown by
+    HIGHLIGHT_GROW_PX; the refinement's uncertain band; both) and the guided refinement
+    of the degraded map everywhere else."""
+    from scipy import ndimage
+
+    from mpib_validate.bench import photos
+    from mpib_validate.layers.refine import uncertain_band
+
+    colour, D = _two_regions(size=64, edge=30)
+    colour = colour.copy()
+    colour[8:10, 8:10] = 20.0  # a small light, far from the edge
+    pred = degrade_disparity(D, 3)
+    out = photos.oracle_disparities(colour, D, pred, 40.0)
+    assert set(out) == set(photos.ORACLES.values())
+    refined = refine_disparity(colour, pred, 40.0)
+    lights = ndimage.binary_dilation(colour.max(-1) > 1.0,
+                                     iterations=photos.HIGHLIGHT_GROW_PX)
+    band = uncertain_band(pred, 40.0)
+    # a 2x2 square grown twice by the 4-neighbour cross: 24 pixels
+    assert lights.sum() == 24 and band.any() and not (lights & band).any()
+    for key, region in (("highlights", lights), ("band", band), ("both", lights | band)):
+        got = out[photos.ORACLES[key]]
+        np.testing.assert_array_equal(got[region], D[region])
+        np.testing.assert_array_equal(got[~region], refined[~region])
+
+
 def test_refinement_on_tiles_equals_the_whole_image(monkeypatch):
     """The guided filter runs on boxes around the edges with a 2 r margin; with one tile
     the size of the image the result must be the same: it is a threshold of the filter

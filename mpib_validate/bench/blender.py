@@ -171,7 +171,7 @@ def degraded_images(sc, passes, A: float, d_f: float) -> dict:
     guided-thin) and the Defocus node on the same degraded depth (when bpy is there)."""
     import importlib.util
 
-    from mpib_validate.bench.photos import disparity_to_depth
+    from mpib_validate.bench.photos import disparity_to_depth, oracle_disparities
     from mpib_validate.blender.scenes import lens
     from mpib_validate.cards.degrade import degrade_disparity
     from mpib_validate.layers.passes import depth_to_disparity
@@ -185,6 +185,12 @@ def degraded_images(sc, passes, A: float, d_f: float) -> dict:
     for name, refine in ((DEGRADED, None), (DEGRADED_GUIDED, "guided"),
                          (DEGRADED_THIN, "guided-thin")):
         res, seconds = _timed(lambda: refocus(pg, A, d_f, "default", refine=refine))
+        out[name] = (premultiplied(res.image), seconds)
+    # where the loss lies: the exact disparity given back to the guided result on the
+    # highlights, the uncertain band, both (the photos suite's decomposition)
+    for name, D_o in oracle_disparities(passes.colour, D, Dg, A).items():
+        po = replace(passes, depth=disparity_to_depth(D_o), disparity=D_o)
+        res, seconds = _timed(lambda: refocus(po, A, d_f, "default"))
         out[name] = (premultiplied(res.image), seconds)
     if importlib.util.find_spec("bpy") is not None:
         from mpib_validate.compositor.defocus_node import defocus
@@ -478,6 +484,16 @@ def _summarise(result) -> dict:
             f"depth ({margin.mean():+.1f} dB; the refined default wins {int((margin > 0).sum())} "
             f"of {len(margin)}, worst {margin.min():+.1f} dB); with guided-thin "
             f"{mean['thin']:.1f} dB.")
+        orc = {k: float(np.mean([r[f"oracle_{k}"] for r in deg]))
+               for k in ("highlights", "band", "both")}
+        if all(math.isfinite(v) for v in orc.values()):
+            heads.append(
+                f"Blender scenes, where the degraded depth loses (the exact disparity given "
+                f"back to the guided result): on the highlights "
+                f"{orc['highlights'] - mean['guided']:+.1f} dB, on the uncertain band "
+                f"{orc['band'] - mean['guided']:+.1f} dB, on both "
+                f"{orc['both'] - mean['guided']:+.1f} dB; the rest "
+                f"{mean['exact'] - orc['both']:+.1f} dB to the exact bound.")
     g = {r["method"]: r for r in table}
     if DEFAULT in g and "exact-mpi" in g:
         heads.append(f"Blender scenes: the same MPI rendered exactly reaches PSNR_ob "
@@ -528,7 +544,11 @@ def layered_table(result) -> list[dict]:
 
 def degraded_table(result) -> list[dict]:
     """Per scene and focus: PSNR_ob of the default preset on the exact and the degraded
-    depth (refinement off, guided) and of the Defocus node on both."""
+    depth (refinement off, guided, guided-thin), of the Defocus node on both, and of the
+    loss decomposition's rows (``oracle_highlights``, ``oracle_band``, ``oracle_both``:
+    the guided result with the exact disparity given back there)."""
+    from mpib_validate.bench.photos import ORACLES
+
     by = _by_scene(result["rows"])
     out = []
     for scene, g in by.items():
@@ -539,7 +559,9 @@ def degraded_table(result) -> list[dict]:
                     "thin": g[DEGRADED_THIN]["psnr_ob"] if DEGRADED_THIN in g else math.nan,
                     "node_exact": g[NODE]["psnr_ob"] if NODE in g else math.nan,
                     "node_degraded": (g[NODE_DEGRADED]["psnr_ob"] if NODE_DEGRADED in g
-                                      else math.nan)})
+                                      else math.nan),
+                    **{f"oracle_{k}": g[name]["psnr_ob"] if name in g else math.nan
+                       for k, name in ORACLES.items()}})
     return out
 
 
@@ -549,6 +571,8 @@ def _fmt(v, nd=2):
 
 def _markdown(result) -> str:
     m = result["machine"]
+    from mpib_validate.bench.photos import HIGHLIGHT_GROW_PX
+
     lines = ["# Refocusing ordinary 3D Blender scenes", "",
              f"Machine: {m.get('processor')}, {m.get('affinity_cores', m.get('cpu_count'))} cores; "
              f"Python {m['python']}, bpy {m.get('bpy', '-')}. "
@@ -620,6 +644,19 @@ def _markdown(result) -> str:
         mean = {k: float(np.mean([r[k] for r in deg])) for k in keys}
         lines.append(f"| mean | " + " | ".join(_fmt(mean[k]) for k in keys) +
                      f" | {mean['guided'] - mean['node_degraded']:+.2f} |")
+        okeys = ("oracle_highlights", "oracle_band", "oracle_both")
+        if all(math.isfinite(r[k]) for r in deg for k in okeys):
+            lines += ["", "Where the loss lies: the guided result with the exact disparity "
+                      "given back on the HDR highlights (all-in-focus > 1, grown "
+                      f"{HIGHLIGHT_GROW_PX} px), on the refinement's uncertain band, on both "
+                      "(PSNR_ob, dB).", "",
+                      "| scene | guided | + exact on highlights | + exact on band "
+                      "| + exact on both | exact (bound) |", "|---|---|---|---|---|---|"]
+            for r in deg + [{"scene": "mean", **{k: float(np.mean([x[k] for x in deg]))
+                                                 for k in ("guided", "exact") + okeys}}]:
+                lines.append(f"| {r['scene']} | {_fmt(r['guided'])} | "
+                             + " | ".join(_fmt(r[k]) for k in okeys)
+                             + f" | {_fmt(r['exact'])} |")
     lines += ["", "## Every method per scene", "",
               "| scene | method | time (s) | PSNR | PSNR_ob | SSIM | SSIM_ob |",
               "|---|---|---|---|---|---|---|"]

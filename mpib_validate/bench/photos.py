@@ -98,13 +98,14 @@ ORACLES = {"highlights": "oracle: guided + exact on highlights",
 HIGHLIGHT_GROW_PX = 2
 
 
-def _oracle_methods(aif, exact, degraded, A, passes, preset) -> dict:
-    """Where the degraded depth's loss lies, measured: the default preset on the guided
-    refinement of the degraded disparity, with the exact disparity put back (a) on the
+def oracle_disparities(aif, exact, degraded, A) -> dict:
+    """Where the degraded depth's loss lies: ``{row name: disparity}``, the guided
+    refinement of the degraded disparity with the exact disparity put back (a) on the
     HDR highlights (the degradation erases the depth of a light smaller than its blur,
     and the colour cannot tell it back), (b) on the refinement's uncertain band (the
     edges it moves), (c) on both. What (c) leaves below the exact-depth bound lies
-    elsewhere: structures whose predicted edge is too weak to make a band."""
+    elsewhere: structures whose predicted edge is too weak to make a band. Used by this
+    suite on the cards and by ``mpib bench --suite blender`` on its scenes."""
     from scipy import ndimage
 
     from mpib_validate.layers.refine import refine_disparity, uncertain_band
@@ -114,8 +115,13 @@ def _oracle_methods(aif, exact, degraded, A, passes, preset) -> dict:
                                      iterations=HIGHLIGHT_GROW_PX)
     band = uncertain_band(degraded, A)
     regions = {"highlights": lights, "band": band, "both": lights | band}
-    return {ORACLES[k]: passes(np.where(sel, exact, refined), preset, "off")
-            for k, sel in regions.items()}
+    return {ORACLES[k]: np.where(sel, exact, refined) for k, sel in regions.items()}
+
+
+def _oracle_methods(aif, exact, degraded, A, passes, preset) -> dict:
+    """The default preset (refinement off) on each of :func:`oracle_disparities`."""
+    return {name: passes(D, preset, "off")
+            for name, D in oracle_disparities(aif, exact, degraded, A).items()}
 
 
 def scene_rows(scene, label, family, seed, ref_spp, only=None) -> list[dict]:
