@@ -581,6 +581,33 @@ def _float_colour(colour) -> np.ndarray:
     return c if c.dtype in (np.float32, np.float64) else c.astype(np.float64)
 
 
+def _slab_transmission(parts, sources, canvas_width: int, trans: np.ndarray) -> list:
+    """For each share in ``parts`` (every share on the layers of one slab, each layer's
+    far to near; see :func:`layers_from_sheets`), the transmission of the nearer sheets'
+    content in the slab at its pixels, ``prod (1 - alpha_t)`` over the sheets ``t``
+    after its own that have a share in the slab there (a sheet's alpha counted once per
+    pixel, however many of the slab's planes it reaches). ``trans``: a canvas-sized
+    float32 array of ones, left as ones."""
+    by_sheet: dict = {}
+    for k, q in enumerate(parts):
+        by_sheet.setdefault(q[0], []).append(k)
+    out = [None] * len(parts)
+    touched = []
+    for si in sorted(by_sheet, reverse=True):  # near to far
+        ks = by_sheet[si]
+        pxs = [parts[k][4].astype(np.int64) * canvas_width + parts[k][5] for k in ks]
+        for k, px in zip(ks, pxs):
+            out[k] = trans[px].astype(np.float64)
+        px = np.concatenate(pxs)
+        sel = np.concatenate([parts[k][1] for k in ks])
+        upx, first = np.unique(px, return_index=True)
+        trans[upx] *= (1.0 - np.take(sources[si].alpha, sel[first])).astype(np.float32)
+        touched.append(upx)
+    if touched:
+        trans[np.concatenate(touched)] = 1.0
+    return out
+
+
 def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
                        split: str = "linear", snap: float = 0.0, slab: float = 0.0) -> MPI:
     """Cut sheets (given far to near) into planes and combine them into an MPI.
@@ -658,19 +685,41 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
                 by_slab.setdefault(slab_of[g], []).append(role)
         return [(tuple(r), sl) for sl, r in by_slab.items()]
 
+    def layer_parts(p, role_set):
+        """Every share on the layer of plane ``p`` and ``role_set``, far to near:
+        ``(sheet, source pixels, share alpha, cover_is_alpha, rows, cols, tiles)``."""
+        parts = []
+        for si, srt, a, bounds, role, cover_is_alpha in shares:
+            if role not in role_set or bounds[p] == bounds[p + 1]:
+                continue
+            s0, s1 = bounds[p], bounds[p + 1]
+            sel = srt[s0:s1]
+            r, c = sources[si].rows_cols(sel)
+            parts.append((si, sel, a[s0:s1], cover_is_alpha, r, c, (r // T) * ntx + c // T))
+        return parts
+
+    # the layers in the order they are laid: plane by plane; with the additive split
+    # the layers of one slab are summed by the compositor, so a nearer sheet hides a
+    # farther one on every plane of the slab (by its whole alpha), not only on its own
+    # plane: each share is weighted by the transmission of the nearer sheets' content
+    # in the same slab at its pixel (:func:`_slab_transmission`), and the layer is
+    # their sum. On one plane that is "over" with the whole alpha as the cover; across
+    # the planes of a slab it keeps an opaque pixel from counting twice (two sheets of
+    # one pixel on two planes of one slab gave a coverage up to 2).
+    jobs = [(p, rs, sl) for p in range(n_planes) for rs, sl in role_sets(p)]
+    slab_jobs: dict = {}
+    for j in jobs:
+        slab_jobs.setdefault(j[2], []).append(j)
+    trans = np.ones(hc * wc, np.float32) if split == "additive" else None
     layers = []
-    for p, d_p in enumerate(planes):
-        for role_set, slab_id in role_sets(p):
-            # first the pixels and the box of every share on this layer, far to near
-            parts = []
-            for si, srt, a, bounds, role, cover_is_alpha in shares:
-                if role not in role_set or bounds[p] == bounds[p + 1]:
-                    continue
-                s0, s1 = bounds[p], bounds[p + 1]
-                sel = srt[s0:s1]
-                r, c = sources[si].rows_cols(sel)
-                parts.append((si, sel, a[s0:s1], cover_is_alpha, r, c,
-                              (r // T) * ntx + c // T))
+    for slab_id, members in slab_jobs.items():
+        slab_parts = [(p, layer_parts(p, rs)) for p, rs, _ in members]
+        weights = (_slab_transmission([q for _, parts in slab_parts for q in parts],
+                                      sources, wc, trans)
+                   if trans is not None else None)
+        w_iter = iter(weights) if weights is not None else None
+        for p, parts in slab_parts:
+            d_p = planes[p]
             if not parts:
                 continue
             if not np.isfinite(d_p) or d_p < 0:
@@ -692,7 +741,7 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
                 tile_slot[ids] = np.arange(ids.size)
             flat = data.reshape(-1, K + 1)
             rows16 = flat.view(np.complex128).reshape(-1) if K + 1 == 4 else None
-            for si, sel, a_s, cover_is_alpha, r, c, tile in parts:  # far to near: "over"
+            for si, sel, a_s, cover_is_alpha, r, c, tile in parts:  # far to near
                 src = sources[si]
                 if dense:
                     px = (r - r0) * (c1 - c0) + (c - c0)
@@ -705,10 +754,12 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
                 np.multiply(col[:, :3], a_s[:, None], out=premult[:, :3])
                 premult[:, 3] = a_s
                 np.multiply(col[:, 3:], a_s[:, None], out=premult[:, 4:])
-                cover = np.take(src.alpha, sel) if cover_is_alpha else a_s
-                hide = (1.0 - cover).astype(np.float32)
                 cur = np.take(flat, px, axis=0)
-                cur *= hide[:, None]
+                if w_iter is not None:  # the sum, each share behind the slab's nearer ones
+                    premult *= next(w_iter)[:, None]
+                else:  # "over" on this plane
+                    cover = np.take(src.alpha, sel) if cover_is_alpha else a_s
+                    cur *= (1.0 - cover).astype(np.float32)[:, None]
                 cur += premult.astype(np.float32)
                 if rows16 is not None:  # 16 B rows: one complex128 each, a 1-D scatter
                     rows16[px] = cur.view(np.complex128).reshape(-1)
