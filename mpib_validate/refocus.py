@@ -251,11 +251,14 @@ def load_layered_passes(path, layered: bool | None = None,
     ``layered=None`` (automatic): the view layers named ``mpib_group_<k>``, if there
     are two or more; ``True``: every view layer with Combined and Depth (an error
     naming the file if fewer than two); ``False``: None. The groups are ordered far to
-    near by their median depth (over pixels with alpha > 1/2 and a finite Z). Where the
-    farthest group has an Environment pass (the world, see
-    :mod:`mpib_validate.blender.layers`), it is added to that group's colour, which is
-    then opaque; its entry in ``Passes.groups`` carries the group's own coverage as a
-    fourth member (where it is 0 the pixel is the world: disparity 0)."""
+    near: ``mpib_group_<k>`` by ``k`` (:mod:`mpib_validate.blender.layers` numbers them
+    far to near and puts an object spanning the depth range, a ground plane, into group
+    0 with the world, although its median depth may be nearer than the next group's);
+    other view layers by their median depth (over pixels with alpha > 1/2 and a finite
+    Z), a layer with an Environment pass first (the world lies behind everything). Where
+    the farthest group has an Environment pass (the world), it is added to that group's
+    colour, which is then opaque; its entry in ``Passes.groups`` carries the group's own
+    coverage as a fourth member (where it is 0 the pixel is the world: disparity 0)."""
     if layered is False:
         return None
     img = read_exr(path)
@@ -277,7 +280,11 @@ def load_layered_passes(path, layered: bool | None = None,
         rgba = rgba_from(img, f"{name}.Combined.").astype(np.float64)
         z = img.channels[f"{name}.Depth.Z"].astype(np.float64)
         groups.append((name, rgba[..., :3], np.clip(rgba[..., 3], 0.0, 1.0), z))
-    groups.sort(key=lambda g: -_median_depth(g[3], g[2], far_limit))  # far to near
+    if all(GROUP_LAYER.match(g[0]) for g in groups):  # the renderer's order, far to near
+        groups.sort(key=lambda g: int(GROUP_LAYER.match(g[0]).group(1)))
+    else:  # far to near by median depth, the world's layer first
+        groups.sort(key=lambda g: (f"{g[0]}.Environment.R" not in img.channels,
+                                   -_median_depth(g[3], g[2], far_limit)))
     far = groups[0][0]
     if f"{far}.Environment.R" in img.channels:
         # the world behind the farthest group (blender.layers: the artist's film was

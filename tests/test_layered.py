@@ -574,3 +574,49 @@ def test_the_world_behind_the_farthest_group_comes_from_its_environment_pass(tmp
     assert np.isfinite(res.image).all()
     np.testing.assert_allclose(res.image[..., 3], 1.0, atol=1e-6)  # opaque in, opaque out
     np.testing.assert_allclose(res.image[0, 0, :3], sky, atol=1e-4)  # the sky far from all
+
+
+def _write_groups(path, groups, env=None, env_layer="mpib_group_0"):
+    ch = {}
+    for name, P, a, z in groups:
+        for i, c in enumerate("RGB"):
+            ch[f"{name}.Combined.{c}"] = P[..., i].astype(np.float32)
+        ch[f"{name}.Combined.A"] = a.astype(np.float32)
+        ch[f"{name}.Depth.Z"] = z.astype(np.float32)
+    if env is not None:
+        for i, c in enumerate("RGB"):
+            ch[f"{env_layer}.Environment.{c}"] = env[..., i].astype(np.float32)
+    write_exr(path, ch)
+
+
+def test_a_ground_plane_group_stays_farthest_with_the_world(tmp_path):
+    """blender.layers puts an object spanning the depth range (a ground plane) into
+    mpib_group_0 with the world's Environment pass. Its median depth can be nearer than
+    a farther group's (a ball standing far away on it): the groups must keep the
+    renderer's order, or the world is added to no group and the sky turns black (a
+    suite scene split into 4 groups scored 10 dB PSNR_ob so). Other view layers are
+    ordered by median depth with the world's layer first."""
+    Hs, Ws = 10, 12
+    sky = np.array([0.45, 0.6, 0.85])
+    a0 = np.zeros((Hs, Ws))
+    a0[4:] = 1.0  # the ground in the lower part; the world above
+    z0 = np.where(a0 > 0, np.linspace(6.0, 1.0, Hs)[:, None] * np.ones((1, Ws)), 1e10)
+    P0 = 0.3 * a0[..., None] * np.ones(3)
+    env = (1.0 - a0)[..., None] * sky
+    a1 = np.zeros((Hs, Ws))
+    a1[1:5, 2:5] = 1.0  # a ball far away (8 m), behind the ground's median (about 3 m)
+    P1 = a1[..., None] * np.array([0.9, 0.6, 0.1])
+    z1 = np.where(a1 > 0, 8.0, 1e10)
+    # numbered out of median-depth order on purpose: group 0 is the ground
+    _write_groups(tmp_path / "ground.exr", [("mpib_group_0", P0, a0, z0),
+                                            ("mpib_group_1", P1, a1, z1)], env)
+    lp = load_layered_passes(tmp_path / "ground.exr")
+    assert len(lp.groups) == 2 and len(lp.groups[0]) == 4  # the world rides with group 0
+    np.testing.assert_allclose(lp.colour[0, 0], sky, atol=1e-6)
+    np.testing.assert_allclose(lp.alpha, 1.0)
+    # any other names: by median depth, but the layer with the world goes first
+    _write_groups(tmp_path / "named.exr", [("ground", P0, a0, z0), ("ball", P1, a1, z1)],
+                  env, env_layer="ground")
+    lp = load_layered_passes(tmp_path / "named.exr", layered=True)
+    assert "ground, ball" in lp.colour_source
+    np.testing.assert_allclose(lp.colour[0, 0], sky, atol=1e-6)
