@@ -581,31 +581,41 @@ def _float_colour(colour) -> np.ndarray:
     return c if c.dtype in (np.float32, np.float64) else c.astype(np.float64)
 
 
-def _slab_transmission(parts, sources, canvas_width: int, trans: np.ndarray) -> list:
-    """For each share in ``parts`` (every share on the layers of one slab, each layer's
-    far to near; see :func:`layers_from_sheets`), the transmission of the nearer sheets'
-    content in the slab at its pixels, ``prod (1 - alpha_t)`` over the sheets ``t``
-    after its own that have a share in the slab there (a sheet's alpha counted once per
-    pixel, however many of the slab's planes it reaches). ``trans``: a canvas-sized
-    float32 array of ones, left as ones."""
-    by_sheet: dict = {}
-    for k, q in enumerate(parts):
-        by_sheet.setdefault(q[0], []).append(k)
-    out = [None] * len(parts)
-    touched = []
-    for si in sorted(by_sheet, reverse=True):  # near to far
-        ks = by_sheet[si]
-        pxs = [parts[k][4].astype(np.int64) * canvas_width + parts[k][5] for k in ks]
-        for k, px in zip(ks, pxs):
-            out[k] = trans[px].astype(np.float64)
-        px = np.concatenate(pxs)
-        sel = np.concatenate([parts[k][1] for k in ks])
-        upx, first = np.unique(px, return_index=True)
-        trans[upx] *= (1.0 - np.take(sources[si].alpha, sel[first])).astype(np.float32)
-        touched.append(upx)
-    if touched:
-        trans[np.concatenate(touched)] = 1.0
-    return out
+def _slab_weights(members, shares, sources, canvas_width: int, trans: np.ndarray) -> dict:
+    """The weight of each share on the layers of one slab (see :func:`layers_from_sheets`):
+    ``{(plane, share entry): float32 array}``, the transmission of the nearer sheets'
+    content in the slab at the share's pixels, ``prod (1 - alpha_t)`` over the sheets
+    ``t`` after its own that have a share in the slab there (a sheet's alpha counted once
+    per pixel, however many of the slab's planes it reaches; a sheet's pixels are
+    distinct). ``members``: the slab's layers ``(plane, roles)``; ``trans``: a
+    canvas-sized float32 array of ones, left as ones. Memory: 4 B per share of the slab,
+    and one sheet's canvas indices at a time."""
+    entries: dict = {}  # sheet -> [(plane, entry, source pixels)]
+    for p, role_set in members:
+        for j, (si, srt, _, bounds, role, _) in enumerate(shares):
+            if role in role_set and bounds[p] != bounds[p + 1]:
+                entries.setdefault(si, []).append((p, j, srt[bounds[p]:bounds[p + 1]]))
+
+    def canvas(si, sel):
+        r, c = sources[si].rows_cols(sel)
+        return r.astype(np.int64) * canvas_width + c
+
+    weights = {}
+    for si in sorted(entries, reverse=True):  # near to far
+        # every share of the sheet reads the transmission before the sheet changes it;
+        # the shares of one pixel then write the same value
+        seen = []
+        for p, j, sel in entries[si]:
+            px = canvas(si, sel)
+            weights[p, j] = trans[px]
+            seen.append((px, sel, weights[p, j]))
+        for px, sel, w in seen:
+            trans[px] = w * (1.0 - np.take(sources[si].alpha, sel)).astype(np.float32)
+        del seen
+    for si, found in entries.items():
+        for _, _, sel in found:
+            trans[canvas(si, sel)] = 1.0
+    return weights
 
 
 def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
@@ -687,22 +697,24 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
 
     def layer_parts(p, role_set):
         """Every share on the layer of plane ``p`` and ``role_set``, far to near:
-        ``(sheet, source pixels, share alpha, cover_is_alpha, rows, cols, tiles)``."""
+        ``(sheet, source pixels, share alpha, cover_is_alpha, rows, cols, tiles,
+        share entry)``."""
         parts = []
-        for si, srt, a, bounds, role, cover_is_alpha in shares:
+        for j, (si, srt, a, bounds, role, cover_is_alpha) in enumerate(shares):
             if role not in role_set or bounds[p] == bounds[p + 1]:
                 continue
             s0, s1 = bounds[p], bounds[p + 1]
             sel = srt[s0:s1]
             r, c = sources[si].rows_cols(sel)
-            parts.append((si, sel, a[s0:s1], cover_is_alpha, r, c, (r // T) * ntx + c // T))
+            parts.append((si, sel, a[s0:s1], cover_is_alpha, r, c, (r // T) * ntx + c // T,
+                          j))
         return parts
 
     # the layers in the order they are laid: plane by plane; with the additive split
     # the layers of one slab are summed by the compositor, so a nearer sheet hides a
     # farther one on every plane of the slab (by its whole alpha), not only on its own
     # plane: each share is weighted by the transmission of the nearer sheets' content
-    # in the same slab at its pixel (:func:`_slab_transmission`), and the layer is
+    # in the same slab at its pixel (:func:`_slab_weights`), and the layer is
     # their sum. On one plane that is "over" with the whole alpha as the cover; across
     # the planes of a slab it keeps an opaque pixel from counting twice (two sheets of
     # one pixel on two planes of one slab gave a coverage up to 2).
@@ -713,13 +725,11 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
     trans = np.ones(hc * wc, np.float32) if split == "additive" else None
     layers = []
     for slab_id, members in slab_jobs.items():
-        slab_parts = [(p, layer_parts(p, rs)) for p, rs, _ in members]
-        weights = (_slab_transmission([q for _, parts in slab_parts for q in parts],
-                                      sources, wc, trans)
-                   if trans is not None else None)
-        w_iter = iter(weights) if weights is not None else None
-        for p, parts in slab_parts:
+        weights = (_slab_weights([(p, rs) for p, rs, _ in members], shares, sources, wc,
+                                 trans) if trans is not None else None)
+        for p, rs, _ in members:
             d_p = planes[p]
+            parts = layer_parts(p, rs)
             if not parts:
                 continue
             if not np.isfinite(d_p) or d_p < 0:
@@ -741,7 +751,7 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
                 tile_slot[ids] = np.arange(ids.size)
             flat = data.reshape(-1, K + 1)
             rows16 = flat.view(np.complex128).reshape(-1) if K + 1 == 4 else None
-            for si, sel, a_s, cover_is_alpha, r, c, tile in parts:  # far to near
+            for si, sel, a_s, cover_is_alpha, r, c, tile, entry in parts:  # far to near
                 src = sources[si]
                 if dense:
                     px = (r - r0) * (c1 - c0) + (c - c0)
@@ -755,8 +765,8 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
                 premult[:, 3] = a_s
                 np.multiply(col[:, 3:], a_s[:, None], out=premult[:, 4:])
                 cur = np.take(flat, px, axis=0)
-                if w_iter is not None:  # the sum, each share behind the slab's nearer ones
-                    premult *= next(w_iter)[:, None]
+                if weights is not None:  # the sum, each share behind the slab's nearer ones
+                    premult *= weights.pop((p, entry))[:, None]
                 else:  # "over" on this plane
                     cover = np.take(src.alpha, sel) if cover_is_alpha else a_s
                     cur *= (1.0 - cover).astype(np.float32)[:, None]
