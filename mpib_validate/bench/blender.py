@@ -42,7 +42,9 @@ A third part replaces the Z pass by a degraded disparity, as a monocular estimat
 seeded per scene): the default preset without and with the guided refinement
 (``refocus(..., refine="guided")``) and the Defocus node on the same degraded depth,
 against the same truth; the exact depth's scores are the bound. It is the photos
-suite's measurement on scenes that are not cards.
+suite's measurement on scenes that are not cards, with its loss decomposition (the
+exact disparity given back to the guided result on the highlights, the uncertain band,
+both: :func:`mpib_validate.bench.photos.oracle_disparities`).
 
 The Cycles renders are cached under ``<out>/blender-cache`` (see
 :func:`blender_scenes.render_suite`): a re-run renders nothing.
