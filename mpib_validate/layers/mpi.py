@@ -627,11 +627,17 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
     :func:`split_between_planes` (``split="linear"``) or goes wholly to the nearest plane
     (``split="nearest"``); ``snap`` (disparity) is passed on to the split. On each plane
     the sheets are combined with "over", later (nearer) sheets on top:
-    ``L = L (1 - cover) + premult``, in float32. Only pixels with alpha > 0 are touched.
+    ``L = L (1 - cover) + premult``, in float32. With ``split="additive"`` the layers of
+    a slab are summed by the compositor, so there the nearer sheets hide a farther one
+    on every plane of the slab: each share is weighted by ``prod (1 - alpha_t)`` over
+    the nearer sheets with content in the slab at its pixel (:func:`_slab_weights`) and
+    the layer is the sum, which on one plane is that "over". Only pixels with alpha > 0
+    are touched.
 
     Memory: one canvas-sized float32 plane, and per share of a pixel 12 B (its source
-    index and share alpha, grouped by plane with a stable counting sort); the colour is
-    read from the sheets plane by plane. A layer is stored as its occupied
+    index and share alpha, grouped by plane with a stable counting sort); with the
+    additive split one more canvas-sized float32 array and 4 B per share of the slab
+    being laid; the colour is read from the sheets plane by plane. A layer is stored as its occupied
     :data:`TILE_PX` tiles where they cover at most :data:`TILED_FILL_MAX` of its box.
     """
     planes = np.asarray(planes, np.float64)
