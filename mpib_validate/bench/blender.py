@@ -572,9 +572,9 @@ def _fmt(v, nd=2):
 
 
 def _markdown(result) -> str:
-    m = result["machine"]
     from mpib_validate.bench.photos import HIGHLIGHT_GROW_PX
 
+    m = result["machine"]
     lines = ["# Refocusing ordinary 3D Blender scenes", "",
              f"Machine: {m.get('processor')}, {m.get('affinity_cores', m.get('cpu_count'))} cores; "
              f"Python {m['python']}, bpy {m.get('bpy', '-')}. "

@@ -575,13 +575,29 @@ class _Source:
         r, c = np.divmod(src, self.w)
         return r + self.origin[0], c + self.origin[1]
 
+    def canvas_index(self, src: np.ndarray) -> np.ndarray:
+        """Flat canvas indices (row * canvas width + column) of the source pixels."""
+        if self.index is not None:
+            return self.index[src]
+        r, c = self.rows_cols(src)
+        return r.astype(np.int64) * self.canvas_width + c
+
+
+def _layer_shares(shares, p: int, role_set):
+    """``(entry, share)`` for each share (far to near) with pixels on the layer of plane
+    ``p`` whose roles are ``role_set`` (see :func:`layers_from_sheets`)."""
+    for j, share in enumerate(shares):
+        bounds, role = share[3], share[4]
+        if role in role_set and bounds[p] != bounds[p + 1]:
+            yield j, share
+
 
 def _float_colour(colour) -> np.ndarray:
     c = np.asarray(colour)
     return c if c.dtype in (np.float32, np.float64) else c.astype(np.float64)
 
 
-def _slab_weights(members, shares, sources, canvas_width: int, trans: np.ndarray) -> dict:
+def _slab_weights(members, shares, sources, trans: np.ndarray) -> dict:
     """The weight of each share on the layers of one slab (see :func:`layers_from_sheets`):
     ``{(plane, share entry): float32 array}``, the transmission of the nearer sheets'
     content in the slab at the share's pixels, ``prod (1 - alpha_t)`` over the sheets
@@ -592,21 +608,15 @@ def _slab_weights(members, shares, sources, canvas_width: int, trans: np.ndarray
     and one sheet's canvas indices at a time."""
     entries: dict = {}  # sheet -> [(plane, entry, source pixels)]
     for p, role_set in members:
-        for j, (si, srt, _, bounds, role, _) in enumerate(shares):
-            if role in role_set and bounds[p] != bounds[p + 1]:
-                entries.setdefault(si, []).append((p, j, srt[bounds[p]:bounds[p + 1]]))
-
-    def canvas(si, sel):
-        r, c = sources[si].rows_cols(sel)
-        return r.astype(np.int64) * canvas_width + c
-
+        for j, (si, srt, _, bounds, _, _) in _layer_shares(shares, p, role_set):
+            entries.setdefault(si, []).append((p, j, srt[bounds[p]:bounds[p + 1]]))
     weights = {}
     for si in sorted(entries, reverse=True):  # near to far
         # every share of the sheet reads the transmission before the sheet changes it;
         # the shares of one pixel then write the same value
         seen = []
         for p, j, sel in entries[si]:
-            px = canvas(si, sel)
+            px = sources[si].canvas_index(sel)
             weights[p, j] = trans[px]
             seen.append((px, sel, weights[p, j]))
         for px, sel, w in seen:
@@ -614,7 +624,7 @@ def _slab_weights(members, shares, sources, canvas_width: int, trans: np.ndarray
         del seen
     for si, found in entries.items():
         for _, _, sel in found:
-            trans[canvas(si, sel)] = 1.0
+            trans[sources[si].canvas_index(sel)] = 1.0
     return weights
 
 
@@ -637,8 +647,8 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
     Memory: one canvas-sized float32 plane, and per share of a pixel 12 B (its source
     index and share alpha, grouped by plane with a stable counting sort); with the
     additive split one more canvas-sized float32 array and 4 B per share of the slab
-    being laid; the colour is read from the sheets plane by plane. A layer is stored as its occupied
-    :data:`TILE_PX` tiles where they cover at most :data:`TILED_FILL_MAX` of its box.
+    being laid; the colour is read from the sheets plane by plane. A layer is stored as
+    its occupied :data:`TILE_PX` tiles where they cover at most :data:`TILED_FILL_MAX` of its box.
     """
     planes = np.asarray(planes, np.float64)
     n_planes = len(planes)
@@ -706,9 +716,7 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
         ``(sheet, source pixels, share alpha, cover_is_alpha, rows, cols, tiles,
         share entry)``."""
         parts = []
-        for j, (si, srt, a, bounds, role, cover_is_alpha) in enumerate(shares):
-            if role not in role_set or bounds[p] == bounds[p + 1]:
-                continue
+        for j, (si, srt, a, bounds, _, cover_is_alpha) in _layer_shares(shares, p, role_set):
             s0, s1 = bounds[p], bounds[p + 1]
             sel = srt[s0:s1]
             r, c = sources[si].rows_cols(sel)
@@ -716,24 +724,24 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
                           j))
         return parts
 
-    # the layers in the order they are laid: plane by plane; with the additive split
-    # the layers of one slab are summed by the compositor, so a nearer sheet hides a
-    # farther one on every plane of the slab (by its whole alpha), not only on its own
-    # plane: each share is weighted by the transmission of the nearer sheets' content
-    # in the same slab at its pixel (:func:`_slab_weights`), and the layer is
-    # their sum. On one plane that is "over" with the whole alpha as the cover; across
-    # the planes of a slab it keeps an opaque pixel from counting twice (two sheets of
-    # one pixel on two planes of one slab gave a coverage up to 2).
-    jobs = [(p, rs, sl) for p in range(n_planes) for rs, sl in role_sets(p)]
-    slab_jobs: dict = {}
-    for j in jobs:
-        slab_jobs.setdefault(j[2], []).append(j)
+    # the layers slab by slab (without the additive split: one slab, None), plane by
+    # plane inside a slab. The layers of one slab are summed by the compositor, so a
+    # nearer sheet hides a farther one on every plane of the slab (by its whole alpha),
+    # not only on its own plane: each share is weighted by the transmission of the
+    # nearer sheets' content in the same slab at its pixel (:func:`_slab_weights`), and
+    # the layer is their sum. On one plane that is "over" with the whole alpha as the
+    # cover; across the planes of a slab it keeps an opaque pixel from counting twice
+    # (two sheets of one pixel on two planes of one slab gave a coverage up to 2).
+    slab_layers: dict = {}  # slab -> [(plane, roles)]
+    for p in range(n_planes):
+        for rs, sl in role_sets(p):
+            slab_layers.setdefault(sl, []).append((p, rs))
     trans = np.ones(hc * wc, np.float32) if split == "additive" else None
     layers = []
-    for slab_id, members in slab_jobs.items():
-        weights = (_slab_weights([(p, rs) for p, rs, _ in members], shares, sources, wc,
-                                 trans) if trans is not None else None)
-        for p, rs, _ in members:
+    for slab_id, members in slab_layers.items():
+        weights = (_slab_weights(members, shares, sources, trans)
+                   if trans is not None else None)
+        for p, rs in members:
             d_p = planes[p]
             parts = layer_parts(p, rs)
             if not parts:
