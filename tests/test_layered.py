@@ -534,6 +534,21 @@ def test_what_indirect_only_gets_wrong_refraction_is_blurred_at_the_glass(glass)
     assert glass_["layered"][0] > glass_["single"][0] + 10.0  # and far below the fill's
 
 
+def _write_groups(path, groups, env=None, env_layer="mpib_group_0"):
+    """A multilayer EXR of group layers ``(name, premultiplied colour, alpha, Z)``,
+    and the world's Environment pass on ``env_layer``."""
+    ch = {}
+    for name, P, a, z in groups:
+        for i, c in enumerate("RGB"):
+            ch[f"{name}.Combined.{c}"] = P[..., i].astype(np.float32)
+        ch[f"{name}.Combined.A"] = a.astype(np.float32)
+        ch[f"{name}.Depth.Z"] = z.astype(np.float32)
+    if env is not None:
+        for i, c in enumerate("RGB"):
+            ch[f"{env_layer}.Environment.{c}"] = env[..., i].astype(np.float32)
+    write_exr(path, ch)
+
+
 def test_the_world_behind_the_farthest_group_comes_from_its_environment_pass(tmp_path):
     """blender.layers gives the farthest layer an Environment pass where the artist's
     film is opaque: load_layered_passes adds it (the world where that layer's samples
@@ -550,16 +565,8 @@ def test_the_world_behind_the_farthest_group_comes_from_its_environment_pass(tmp
     a1[5:7, 5:7] = 1.0  # a box in front
     P1 = a1[..., None] * np.array([0.9, 0.1, 0.1])
     z1 = np.where(a1 > 0, 1.5, 1e10)
-    ch = {}
-    for name, P, a, z in (("mpib_group_0", P0, a0, z0), ("mpib_group_1", P1, a1, z1)):
-        for i, c in enumerate("RGB"):
-            ch[f"{name}.Combined.{c}"] = P[..., i].astype(np.float32)
-        ch[f"{name}.Combined.A"] = a.astype(np.float32)
-        ch[f"{name}.Depth.Z"] = z.astype(np.float32)
-    for i, c in enumerate("RGB"):
-        ch[f"mpib_group_0.Environment.{c}"] = env[..., i].astype(np.float32)
     path = tmp_path / "world.exr"
-    write_exr(path, ch)
+    _write_groups(path, [("mpib_group_0", P0, a0, z0), ("mpib_group_1", P1, a1, z1)], env)
     lp = load_layered_passes(path)
     far = lp.groups[0]
     np.testing.assert_allclose(far[1], 1.0)  # opaque once the world is behind it
@@ -574,19 +581,6 @@ def test_the_world_behind_the_farthest_group_comes_from_its_environment_pass(tmp
     assert np.isfinite(res.image).all()
     np.testing.assert_allclose(res.image[..., 3], 1.0, atol=1e-6)  # opaque in, opaque out
     np.testing.assert_allclose(res.image[0, 0, :3], sky, atol=1e-4)  # the sky far from all
-
-
-def _write_groups(path, groups, env=None, env_layer="mpib_group_0"):
-    ch = {}
-    for name, P, a, z in groups:
-        for i, c in enumerate("RGB"):
-            ch[f"{name}.Combined.{c}"] = P[..., i].astype(np.float32)
-        ch[f"{name}.Combined.A"] = a.astype(np.float32)
-        ch[f"{name}.Depth.Z"] = z.astype(np.float32)
-    if env is not None:
-        for i, c in enumerate("RGB"):
-            ch[f"{env_layer}.Environment.{c}"] = env[..., i].astype(np.float32)
-    write_exr(path, ch)
 
 
 def test_a_ground_plane_group_stays_farthest_with_the_world(tmp_path):
