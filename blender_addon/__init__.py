@@ -3,7 +3,7 @@
 The algorithms live in the project's ``mpib_validate`` package, bundled as a wheel (see
 ``blender_manifest.toml``); this add-on only adapts Blender to it: it keeps the passes of
 the last render, calibrates focus and aperture from the scene camera, runs
-``mpib_validate.refocus`` and shows the result as a float image.
+``mpib_validate.runtime.refocus`` and shows the result as a float image.
 """
 
 from . import focus_pull, handlers, layered_ops, nodegroup_ops, operators, properties, ui

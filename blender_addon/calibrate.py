@@ -72,7 +72,7 @@ def _lens(cam_obj, width: int, height: int, frame) -> dict:
 
 def blender_lens(scene, width: int, height: int, frame=None) -> dict:
     """The scene camera as it renders at ``frame``: the fields of
-    :func:`mpib_validate.camera.blender_camera` and of the header's ``camera.blender``
+    :func:`mpib_validate.runtime.camera.blender_camera` and of the header's ``camera.blender``
     (lens, sensor and fit, f-stop, planar focus depth, ``unit_scale``, size).
 
     ``unit_scale`` is 1 whatever the scene's Unit Scale: Cycles takes the lens in mm as
@@ -84,7 +84,7 @@ def blender_lens(scene, width: int, height: int, frame=None) -> dict:
 
 
 def camera_settings(scene, settings, width: int, height: int, warnings=None, frame=None) -> dict:
-    """Lens values for :func:`mpib_validate.camera.blender_camera`, from the scene camera
+    """Lens values for :func:`mpib_validate.runtime.camera.blender_camera`, from the scene camera
     (:func:`blender_lens`) and the panel's overrides. Raises :class:`CalibrationError`
     with advice for the artist; appends advice that does not stop the refocus to
     ``warnings``."""

@@ -2,9 +2,9 @@
 at once, then the full-resolution result.
 
 The last render's passes are refocused through one
-:class:`mpib_validate.session.RefocusSession`, kept here: its MPI is built on the first
+:class:`mpib_validate.runtime.session.RefocusSession`, kept here: its MPI is built on the first
 pull and reused by every later one (a new focus only re-composites; see
-``mpib_validate.session`` for what an f-stop change reuses). A new render drops it
+``mpib_validate.runtime.session`` for what an f-stop change reuses). A new render drops it
 (:func:`drop_session`, called by the render handler), and so does any change to the
 passes file or the preset. Interactively the work runs on a worker thread (a newer pull
 cancels an older one) and a timer shows each stage as it is ready; from a script or in
@@ -24,7 +24,7 @@ PREVIEW_SCALE = 0.25
 class State:
     """What the add-on keeps between pulls (module-level: one Blender process)."""
 
-    session = None  # mpib_validate.session.RefocusSession of the last render's passes
+    session = None  # mpib_validate.runtime.session.RefocusSession of the last render's passes
     key = None  # (passes path, preset) the session was made for
     job = None  # the FocusPullJob in flight (interactive)
     last_preview_shape = None  # (H, W) of the last preview rendered
@@ -44,7 +44,7 @@ def drop_session() -> None:
 def session_for(path: str, preset: str):
     """The kept session if it was made from ``path`` (unchanged on disk) with
     ``preset``; else a new one (the old one and its MPI are dropped first)."""
-    from mpib_validate.session import RefocusSession
+    from mpib_validate.runtime.session import RefocusSession
 
     s = State.session
     if s is not None and State.key == (path, preset) and s.is_current():
@@ -78,13 +78,13 @@ class FocusPullJob:
         self._thread = None
 
     def _progress(self, fraction):
-        from mpib_validate.refocus import Cancelled
+        from mpib_validate.runtime.refocus import Cancelled
 
         if self._stop.is_set():
             raise Cancelled
 
     def run(self) -> "FocusPullJob":
-        from mpib_validate.refocus import Cancelled
+        from mpib_validate.runtime.refocus import Cancelled
 
         try:
             if not self.session.serves(self.A):
@@ -159,7 +159,7 @@ def pull(scene, blocking: bool | None = None) -> bool:
     """Refocus the last render at the panel's focus (pixel or distance) and f-stop:
     preview first, then full resolution. ``blocking=None``: block in background mode
     only. Returns False (with the reason in the panel's status) when it cannot run."""
-    from mpib_validate.camera import blender_camera
+    from mpib_validate.runtime.camera import blender_camera
 
     settings = scene.mpib
     try:

@@ -27,7 +27,7 @@ def save_render_passes(scene) -> str:
     old = (getattr(s, "media_type", None), s.file_format, s.color_depth)
     path = passes_path(scene)
     try:
-        from mpib_validate.blender.compat import set_multilayer_exr
+        from mpib_validate.runtime.blender.compat import set_multilayer_exr
 
         set_multilayer_exr(s, color_depth="32")  # media_type on 5.x, file_format on 4.x
         img.save_render(path, scene=scene)
@@ -43,12 +43,12 @@ _notes = {}  # scene name -> (use_stamp_note, stamp_note_text) before the render
 
 
 def stamp_camera(scene) -> str:
-    """Put the scene camera (``mpib_validate.io.camera_header`` schema) into the render's
+    """Put the scene camera (``mpib_validate.runtime.io.camera_header`` schema) into the render's
     stamp note, which Blender writes into the header (``Note``) of every EXR it saves of
     this render, so that ``mpib refocus`` needs no lens options. The artist's note is
     kept in front of it and the settings are restored after the render
     (:func:`restore_note`). Returns what was not done and why ("" when done)."""
-    from mpib_validate.io.camera_header import stamp_note
+    from mpib_validate.runtime.io.camera_header import stamp_note
 
     from . import calibrate
 

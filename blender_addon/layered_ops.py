@@ -1,4 +1,4 @@
-"""Layered render: one view layer per depth group (``mpib_validate.blender.layers``).
+"""Layered render: one view layer per depth group (``mpib_validate.runtime.blender.layers``).
 
 Ticking "Layered Render" in the panel sets the view layers up (``mpib_group_<k>``, far
 to near), unticking removes them again; the artist's own view layers and collections
@@ -27,7 +27,7 @@ def last_render_depth(scene):
     from .operators import _errors, load_render_passes
 
     try:
-        from mpib_validate.blender.layers import artist_layer
+        from mpib_validate.runtime.blender.layers import artist_layer
 
         return load_render_passes(path, artist_layer(scene).name).depth
     except _errors():
@@ -36,7 +36,7 @@ def last_render_depth(scene):
 
 def picked_collections(scene):
     """The collections of ``scene`` ticked as Depth Groups (depth first, our own skipped)."""
-    from mpib_validate.blender.layers import GROUP_PREFIX
+    from mpib_validate.runtime.blender.layers import GROUP_PREFIX
 
     out = []
 
@@ -55,7 +55,7 @@ def picked_collections(scene):
 def apply_layers(scene) -> list:
     """Set the group view layers up as the panel says; returns their names ([] for the
     single pass) and puts the report into ``scene.mpib.last_message``."""
-    from mpib_validate.blender import layers
+    from mpib_validate.runtime.blender import layers
 
     s = scene.mpib
     if s.group_source == "COLLECTIONS":
@@ -77,7 +77,7 @@ def apply_layers(scene) -> list:
 
 
 def clear_layers(scene) -> int:
-    from mpib_validate.blender import layers
+    from mpib_validate.runtime.blender import layers
 
     n = layers.remove_layers(scene)
     scene.mpib.last_message = f"layered render off: {n} group view layer(s) removed"

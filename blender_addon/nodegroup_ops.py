@@ -1,6 +1,6 @@
 """The "MPIB Refocus" compositor node: an operator that generates it and wires it in.
 
-The node is a node group of Blender's built-in nodes (``mpib_validate.blender.nodegroup``), so
+The node is a node group of Blender's built-in nodes (``mpib_validate.runtime.blender.nodegroup``), so
 it renders inside the compositor (F12, animation renders, render farms, the GPU
 compositor) and keeps working when the .blend is opened where the extension is not
 installed. This module only adapts Blender to it: where the slices go (the depth of
@@ -31,7 +31,7 @@ FILL_ITEMS = (
 
 
 def _lens_at(scene, frame):
-    """Camera settings (as for mpib_validate.camera.blender_camera) at ``frame``."""
+    """Camera settings (as for mpib_validate.runtime.camera.blender_camera) at ``frame``."""
     r = scene.render
     W = int(r.resolution_x * r.resolution_percentage / 100)
     H = int(r.resolution_y * r.resolution_percentage / 100)
@@ -50,7 +50,7 @@ def _last_depth(scene):
     path = getattr(getattr(scene, "mpib", None), "last_passes", "")
     if not path or not os.path.exists(path):
         return None
-    from mpib_validate.blender.layers import artist_layer
+    from mpib_validate.runtime.blender.layers import artist_layer
 
     from .operators import load_render_passes
 
@@ -89,8 +89,8 @@ class MPIB_OT_add_refocus_node(bpy.types.Operator):
         return True
 
     def execute(self, context):
-        from mpib_validate.blender import nodegroup as ng
-        from mpib_validate.camera import blender_camera
+        from mpib_validate.runtime.blender import nodegroup as ng
+        from mpib_validate.runtime.camera import blender_camera
 
         scene = context.scene
         legacy = ng.is_legacy_api(bpy)

@@ -13,9 +13,9 @@ SUFFIX = " (refocused)"
 
 def _errors():
     """The error types that mean bad input (reported, never a traceback)."""
-    from mpib_validate.io.atomic import OutputError
-    from mpib_validate.io.exr import ExrError
-    from mpib_validate.layers.passes import PassError
+    from mpib_validate.runtime.io.atomic import OutputError
+    from mpib_validate.runtime.io.exr import ExrError
+    from mpib_validate.runtime.layers.passes import PassError
 
     return (calibrate.CalibrationError, PassError, ExrError, OutputError, ValueError, OSError)
 
@@ -41,8 +41,8 @@ def load_render_passes(path: str, view_layer=None):
     """The passes of a rendered EXR: its depth-group layers (``mpib_group_<k>``, a
     Layered Render) when it has them, else its one view layer, or ``view_layer`` (the
     artist's) when it has several."""
-    from mpib_validate.io.exr import ExrError
-    from mpib_validate.refocus import load_layered_passes, load_passes
+    from mpib_validate.runtime.io.exr import ExrError
+    from mpib_validate.runtime.refocus import load_layered_passes, load_passes
 
     layered = load_layered_passes(path)
     if layered is not None:
@@ -70,9 +70,9 @@ def prepare(context_or_scene, path: str, name: str, frame=None, save=None) -> di
     calibration (at ``frame``, default the current one), the panel's settings and where
     to save (``save``: a path, or ``None`` for the panel's choice). Raises one of
     :func:`_errors`."""
-    from mpib_validate.io.atomic import refuse_overwrite
-    from mpib_validate.layers.passes import PassError
-    from mpib_validate.io.exr import image_size
+    from mpib_validate.runtime.io.atomic import refuse_overwrite
+    from mpib_validate.runtime.layers.passes import PassError
+    from mpib_validate.runtime.io.exr import image_size
 
     scene = getattr(context_or_scene, "scene", context_or_scene)
     settings = scene.mpib
@@ -89,7 +89,7 @@ def prepare(context_or_scene, path: str, name: str, frame=None, save=None) -> di
         out = _output_path(scene, path)
     if out is not None:
         refuse_overwrite(out, [path])
-    from mpib_validate.blender.layers import artist_layer
+    from mpib_validate.runtime.blender.layers import artist_layer
 
     return {"path": path, "name": name, "camera": cam_kwargs, "pixel": pixel,
             "view_layer": artist_layer(scene).name,
@@ -99,10 +99,10 @@ def prepare(context_or_scene, path: str, name: str, frame=None, save=None) -> di
 
 def compute(request: dict, progress=None):
     """The refocus itself: no Blender calls, so it may run on a worker thread.
-    ``progress(fraction)`` may raise ``mpib_validate.refocus.Cancelled`` to stop; nothing
-    is written then. Returns the :class:`mpib_validate.refocus.RefocusResult`."""
-    from mpib_validate.camera import blender_camera
-    from mpib_validate.refocus import focus_from_pixel, refocus, write_result
+    ``progress(fraction)`` may raise ``mpib_validate.runtime.refocus.Cancelled`` to stop; nothing
+    is written then. Returns the :class:`mpib_validate.runtime.refocus.RefocusResult`."""
+    from mpib_validate.runtime.camera import blender_camera
+    from mpib_validate.runtime.refocus import focus_from_pixel, refocus, write_result
 
     report = progress if progress is not None else (lambda fraction: None)
     passes = load_render_passes(request["path"], request.get("view_layer"))
@@ -127,7 +127,7 @@ def saved_camera(cam, d_f: float, request: dict) -> dict:
     the ``A``, ``d_f`` used, and where each came from (camera_header's schema)."""
     from dataclasses import replace
 
-    from mpib_validate.io.camera_header import LENS_FIELDS, ResolvedCamera
+    from mpib_validate.runtime.io.camera_header import LENS_FIELDS, ResolvedCamera
 
     lens = {k: request["camera"][k] for k in LENS_FIELDS}
     used = ResolvedCamera(replace(cam, focus_disparity=d_f), lens, request["camera_from"])
@@ -155,14 +155,14 @@ class RefocusJob:
         return self
 
     def _progress(self, fraction: float) -> None:
-        from mpib_validate.refocus import Cancelled
+        from mpib_validate.runtime.refocus import Cancelled
 
         if self._stop.is_set():
             raise Cancelled
         self.fraction = fraction
 
     def _run(self) -> None:
-        from mpib_validate.refocus import Cancelled
+        from mpib_validate.runtime.refocus import Cancelled
 
         try:
             self.result = compute(self.request, self._progress)

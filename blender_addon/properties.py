@@ -6,8 +6,8 @@ from bpy.props import (BoolProperty, EnumProperty, FloatProperty, IntProperty,
 
 
 def _preset_items():
-    """The compositor's named presets (one source of truth: mpib_validate.presets)."""
-    from mpib_validate.presets import PRESETS
+    """The compositor's named presets (one source of truth: mpib_validate.runtime.presets)."""
+    from mpib_validate.runtime.presets import PRESETS
 
     return tuple((name, name.title(), p.description) for name, p in PRESETS.items())
 

@@ -47,7 +47,7 @@ def draw_layered(layout, context):
     if s.group_source == "AUTO":
         box.prop(s, "max_groups")
     else:
-        from mpib_validate.blender.layers import GROUP_PREFIX
+        from mpib_validate.runtime.blender.layers import GROUP_PREFIX
 
         def walk(coll, depth):
             for child in coll.children:

@@ -29,8 +29,8 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-from mpib_validate.io.atomic import write_text
-from mpib_validate.io.exr import write_exr
+from mpib_validate.runtime.io.atomic import write_text
+from mpib_validate.runtime.io.exr import write_exr
 from mpib_validate.cards.scene import Scene
 
 from . import build as _build

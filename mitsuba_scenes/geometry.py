@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mpib_validate.camera import Camera
+from mpib_validate.runtime.camera import Camera
 from mpib_validate.cards.scene import Card
 
 #: Two triangles over the quad (0 top-left, 1 top-right, 2 bottom-right, 3 bottom-left),
@@ -97,7 +97,7 @@ def depth_range(scene) -> tuple[float, float]:
 def write_ply(path, vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray | None = None) -> None:
     """Write a binary little-endian PLY mesh (float32 x y z [u v], int32 triangle lists)
     that Mitsuba's ``ply`` plugin reads."""
-    from mpib_validate.io.atomic import atomic_path
+    from mpib_validate.runtime.io.atomic import atomic_path
 
     vertices = np.asarray(vertices, np.float32)
     faces = np.asarray(faces, np.int32)

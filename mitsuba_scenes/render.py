@@ -173,7 +173,7 @@ def render_result(scene: Scene, spp: int, seed: int = 0, variant: str | None = N
     """:func:`render` as a :class:`mpib_validate.cards.trace.TraceResult` (for the CLI's EXR
     writer): the bokeh image from Mitsuba; the all-in-focus image and the per-pixel maps
     from the ray tracer's pinhole pass (exact, deterministic), on ``backend``."""
-    from mpib_validate.cards import samples as _samples
+    from mpib_validate.runtime import samples as _samples
     from mpib_validate.cards import trace as _trace
 
     bokeh, meta = render(scene, spp, seed, variant, sampler=sampler)

@@ -3,7 +3,7 @@
 Order of preference: ``cuda_ad_rgb`` (a GPU), ``llvm_ad_rgb`` (an LLVM >= 16 library
 that Dr.Jit can run kernels with), ``scalar_rgb`` (always, slow: the Python integrator
 then runs once per sample). The LLVM library is chosen by
-:func:`mpib_validate.compositor.backend.probe_llvm` *before* mitsuba or drjit is imported here
+:func:`mpib_validate.runtime.compositor.backend.probe_llvm` *before* mitsuba or drjit is imported here
 (drjit loads it at import and aborts the process on LLVM 15), and every variant is
 tried in a subprocess that renders a 4x4 image: a failed probe costs a second, never
 the caller's process.
@@ -16,7 +16,7 @@ import importlib.util
 import os
 from dataclasses import dataclass, field
 
-from mpib_validate.compositor import backend as _backend
+from mpib_validate.runtime.compositor import backend as _backend
 
 VARIANTS = ("cuda_ad_rgb", "llvm_ad_rgb", "scalar_rgb")
 

@@ -66,7 +66,7 @@ _NON_NEGATIVE = _number(float, 0)
 
 
 def _limit(args) -> int:
-    from mpib_validate.budget import memory_limit
+    from mpib_validate.runtime.budget import memory_limit
 
     return memory_limit(getattr(args, "max_memory_gb", None))
 
@@ -94,7 +94,7 @@ def _parse_size(text: str) -> tuple[int, int]:
 
 
 def _sample_set(args):
-    from mpib_validate.cards import samples
+    from mpib_validate.runtime import samples
 
     if args.aperture == "grid":
         return samples.grid(args.grid_side, pixel=args.pixel)
@@ -105,8 +105,8 @@ def _sample_set(args):
 
 
 def cmd_generate(args) -> int:
-    from mpib_validate import budget
-    from mpib_validate.io.atomic import check_outputs
+    from mpib_validate.runtime import budget
+    from mpib_validate.runtime.io.atomic import check_outputs
     from mpib_validate.cards.generate import GeneratorSettings, generate
     from mpib_validate.cards.scene import save_scene
 
@@ -145,7 +145,7 @@ def _apply_camera_overrides(scene, args):
 
 
 def _render_estimate(scene, args):
-    from mpib_validate import budget
+    from mpib_validate.runtime import budget
 
     cam = scene.camera
     texels = sum(int(c.rgba.shape[0]) * int(c.rgba.shape[1]) for c in scene.cards)
@@ -156,9 +156,9 @@ def _render_estimate(scene, args):
 
 
 def cmd_render(args) -> int:
-    from mpib_validate import budget
-    from mpib_validate.io.atomic import check_outputs
-    from mpib_validate.io.render_io import write_render
+    from mpib_validate.runtime import budget
+    from mpib_validate.runtime.io.atomic import check_outputs
+    from mpib_validate.cards.render_io import write_render
     from mpib_validate.cards.scene import load_scene
     from mpib_validate.cards.trace import render
 
@@ -205,7 +205,7 @@ def cmd_bench(args) -> int:
 def _read_mask(path: str, shape):
     import numpy as np
 
-    from mpib_validate.io.exr import read_exr
+    from mpib_validate.runtime.io.exr import read_exr
 
     if path.lower().endswith(".exr"):
         img = read_exr(path)
@@ -227,7 +227,7 @@ def _read_mask(path: str, shape):
 
 def cmd_compare(args) -> int:
     from mpib_validate.metrics import all_metrics
-    from mpib_validate.refocus import read_colour
+    from mpib_validate.runtime.refocus import read_colour
 
     a = read_colour(args.reference, all_in_focus=False)
     b = read_colour(args.test, all_in_focus=False)
@@ -277,9 +277,9 @@ def _parse_pixel(text: str) -> tuple[int, int]:
 
 def _refocus_camera(args, passes):
     """The camera of ``mpib refocus``: the input header's, each field overridden by the
-    option that gives it (:func:`mpib_validate.io.camera_header.resolve`)."""
-    from mpib_validate.io.camera_header import resolve
-    from mpib_validate.refocus import focus_from_pixel
+    option that gives it (:func:`mpib_validate.runtime.io.camera_header.resolve`)."""
+    from mpib_validate.runtime.io.camera_header import resolve
+    from mpib_validate.runtime.refocus import focus_from_pixel
 
     H, W = passes.depth.shape
     given = {"lens_mm": args.focal_mm, "sensor_width_mm": args.sensor_mm,
@@ -350,9 +350,9 @@ def _plan_and_refocus(args, passes, A: float, d_f: float, D, background=None,
                       refine: str | None = None):
     """Estimate the memory from the disparity ``D`` (refused past --max-memory-gb),
     print the plan, and refocus with a progress bar on a terminal (``refine``: the
-    disparity refinement, :func:`mpib_validate.refocus.build_mpi`)."""
-    from mpib_validate import budget
-    from mpib_validate.refocus import refocus
+    disparity refinement, :func:`mpib_validate.runtime.refocus.build_mpi`)."""
+    from mpib_validate.runtime import budget
+    from mpib_validate.runtime.refocus import refocus
 
     H, W = D.shape
     est = budget.refocus_estimate(D, A, d_f, args.preset, background=background is not None)
@@ -369,7 +369,7 @@ def _plan_and_refocus(args, passes, A: float, d_f: float, D, background=None,
             result = refocus(passes, A, d_f, args.preset, args.far_limit,
                              background=background, progress=progress, refine=refine)
         else:
-            from mpib_validate.layers.cache import refocus_cached
+            from mpib_validate.runtime.layers.cache import refocus_cached
 
             result, reused, entry = refocus_cached(passes, A, d_f, args.mpi_cache, args.preset,
                                                    args.far_limit, background, progress,
@@ -392,13 +392,13 @@ _PHOTO_ONLY = ("disparity", "K", "disp_focus", "gamma", "encoding", "exr", "offi
 def _photo_input(args) -> bool:
     """Whether ``mpib refocus`` reads a photograph (JPEG/PNG/TIFF colour, or any colour
     with ``--disparity``) rather than rendered EXR passes."""
-    from mpib_validate.io.photo import image_format
+    from mpib_validate.runtime.io.photo import image_format
 
     return args.disparity is not None or image_format(args.input) in ("JPEG", "PNG", "TIFF")
 
 
 def _photo_encoding(args):
-    from mpib_validate.io.photo import Encoding
+    from mpib_validate.runtime.io.photo import Encoding
 
     if args.gamma is not None:
         if args.encoding not in (None, "gamma"):
@@ -411,7 +411,7 @@ def _photo_encoding(args):
 
 
 def _photo_outputs(args) -> list[Path]:
-    from mpib_validate.io.photo import image_format
+    from mpib_validate.runtime.io.photo import image_format
 
     fmt = image_format(args.output)
     if fmt is None:
@@ -427,16 +427,16 @@ def _photo_outputs(args) -> list[Path]:
 def _refocus_photo(args) -> int:
     """``mpib refocus`` of a photograph with a disparity map (or a depth EXR): the MPI is
     built from the linearised colour and the disparity by the same
-    :func:`~mpib_validate.refocus.refocus` as rendered passes; the output is written in
-    the input's encoding (see :mod:`mpib_validate.io.photo`)."""
+    :func:`~mpib_validate.runtime.refocus.refocus` as rendered passes; the output is written in
+    the input's encoding (see :mod:`mpib_validate.runtime.io.photo`)."""
     import numpy as np
 
-    from mpib_validate.camera import OFFICIAL_BINS, from_paper, widen_focus
-    from mpib_validate.io.atomic import check_outputs
-    from mpib_validate.io.photo import Encoding, image_format, output_bits, read_disparity, read_photo, write_photo
-    from mpib_validate.layers.passes import depth_to_disparity
-    from mpib_validate.refocus import _depth_channel, focus_from_pixel, passes_from_photo, write_result
-    from mpib_validate.io.exr import read_exr
+    from mpib_validate.runtime.camera import OFFICIAL_BINS, from_paper, widen_focus
+    from mpib_validate.runtime.io.atomic import check_outputs
+    from mpib_validate.runtime.io.photo import Encoding, image_format, output_bits, read_disparity, read_photo, write_photo
+    from mpib_validate.runtime.layers.passes import depth_to_disparity
+    from mpib_validate.runtime.refocus import _depth_channel, focus_from_pixel, passes_from_photo, write_result
+    from mpib_validate.runtime.io.exr import read_exr
 
     for opt, given in (("--layered", args.layered), ("--background", args.background),
                        ("--view-layer", args.view_layer)):
@@ -550,9 +550,9 @@ def _set_pixel_model(args, passes) -> None:
 
 
 def cmd_refocus(args) -> int:
-    from mpib_validate.io.atomic import check_outputs
-    from mpib_validate.layers.passes import depth_to_disparity
-    from mpib_validate.refocus import load_layered_passes, load_passes, read_background, write_result
+    from mpib_validate.runtime.io.atomic import check_outputs
+    from mpib_validate.runtime.layers.passes import depth_to_disparity
+    from mpib_validate.runtime.refocus import load_layered_passes, load_passes, read_background, write_result
 
     if _photo_input(args):
         return _refocus_photo(args)
@@ -609,7 +609,7 @@ def _report(head: str, info: dict, written, details: str) -> int:
 def cmd_dataset(args) -> int:
     import time
 
-    from mpib_validate import budget
+    from mpib_validate.runtime import budget
     from mpib_validate.cards.dataset import build_dataset
     from mpib_validate.executor import make_executor
 
@@ -644,7 +644,7 @@ def cmd_dataset(args) -> int:
 
 
 def cmd_backends(args) -> int:
-    from mpib_validate.compositor import backend
+    from mpib_validate.runtime.compositor import backend
 
     report = {}
     for name in ("numpy", "llvm", "cuda"):
@@ -658,9 +658,9 @@ def cmd_backends(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from mpib_validate.camera import SENSOR_FITS
+    from mpib_validate.runtime.camera import SENSOR_FITS
     from mpib_validate.cards.generate import FAMILIES, HARD_CASES
-    from mpib_validate.presets import PRESETS
+    from mpib_validate.runtime.presets import PRESETS
 
     p = _Parser(prog="mpib", description=__doc__.split("\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -882,10 +882,10 @@ def _join_option_values(argv: list[str]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from mpib_validate.io.atomic import OutputError
-    from mpib_validate.io.exr import ExrError
+    from mpib_validate.runtime.io.atomic import OutputError
+    from mpib_validate.runtime.io.exr import ExrError
     from mpib_validate.executor import Terminated, raise_on_sigterm, restore_sigterm
-    from mpib_validate.layers.passes import PassError
+    from mpib_validate.runtime.layers.passes import PassError
     from mpib_validate.cards.scene import SceneError
 
     argv = _join_option_values(list(sys.argv[1:] if argv is None else argv))

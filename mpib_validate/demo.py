@@ -17,15 +17,16 @@ from pathlib import Path
 import numpy as np
 
 from mpib_validate import __version__
-from mpib_validate.cards import samples
-from mpib_validate.io.atomic import write_text
-from mpib_validate.compositor.composite import CompositeSettings, composite, render_exact, render_subapertures
+from mpib_validate.runtime import samples
+from mpib_validate.runtime.io.atomic import write_text
+from mpib_validate.runtime.compositor.composite import CompositeSettings, composite, render_subapertures
 from mpib_validate.cards.evaluate import card_scene_mask, score
-from mpib_validate.io.exr import channels_from_rgba, write_exr
+from mpib_validate.runtime.io.exr import channels_from_rgba, write_exr
 from mpib_validate.cards.generate import FAMILIES, GeneratorSettings, generate
-from mpib_validate.layers.mpi import layers_from_cards, uniform_planes
-from mpib_validate.io.preview import write_png
-from mpib_validate.io.render_io import write_render
+from mpib_validate.runtime.layers.mpi import uniform_planes
+from mpib_validate.cards.mpi import layers_from_cards, render_exact
+from mpib_validate.runtime.io.preview import write_png
+from mpib_validate.cards.render_io import write_render
 from mpib_validate.cards.scene import save_scene
 from mpib_validate.cards.trace import render
 

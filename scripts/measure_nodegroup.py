@@ -48,11 +48,11 @@ def session(python, args: dict, env=None) -> dict:
 
 
 def score_case(res: dict, fstop: float, focus: float) -> dict:
-    from mpib_validate.camera import blender_camera
-    from mpib_validate.compositor.defocus_node import defocus
-    from mpib_validate.io.exr import find_pass, read_exr, rgba_from
+    from mpib_validate.runtime.camera import blender_camera
+    from mpib_validate.baselines.defocus_node import defocus
+    from mpib_validate.runtime.io.exr import find_pass, read_exr, rgba_from
     from mpib_validate.metrics import boundaries_from_disparity, occlusion_mask, psnr
-    from mpib_validate.refocus import Passes, refocus
+    from mpib_validate.runtime.refocus import Passes, refocus
 
     f = res["frames"]["1"]
     img = read_exr(f["path"])

@@ -47,11 +47,11 @@ def main(argv=None) -> int:
         print("time_nodegroup: --max-radius must be > 0 and --rounds >= 1", file=sys.stderr)
         return 2
 
-    from mpib_validate.blender import nodegroup as ng
+    from mpib_validate.runtime.blender import nodegroup as ng
     from mpib_validate.blender.scenes import lens, load_scene
-    from mpib_validate.compositor.defocus_node import defocus
-    from mpib_validate.layers.passes import depth_to_disparity
-    from mpib_validate.refocus import load_passes
+    from mpib_validate.baselines.defocus_node import defocus
+    from mpib_validate.runtime.layers.passes import depth_to_disparity
+    from mpib_validate.runtime.refocus import load_passes
 
     sc = load_scene(Path(a.scene))
     passes = load_passes(sc.folder / "passes.exr")

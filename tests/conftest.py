@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mpib_validate.compositor import backend
-from mpib_validate.camera import Camera
+from mpib_validate.runtime.compositor import backend
+from mpib_validate.runtime.camera import Camera
 from mpib_validate.cards.scene import Card, Plane, Scene
 
 

@@ -133,7 +133,7 @@ def test_beats_the_defocus_node_at_occlusion_boundaries(session):
     the refocus against the Cycles depth-of-field render, inside the occlusion-boundary
     mask (from the Z pass). Measured at 64x48: refocus PSNR_ob 35.3 dB, Defocus node
     19.1 dB (a 16.1 dB margin); we require the refocus ahead by 10 dB."""
-    from mpib_validate.compositor.defocus_node import defocus
+    from mpib_validate.baselines.defocus_node import defocus
     from mpib_validate.metrics import psnr
 
     out, work = session

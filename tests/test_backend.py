@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from mpib_validate.compositor import backend
+from mpib_validate.runtime.compositor import backend
 
 
 def test_numpy_always_runs():
@@ -42,9 +42,10 @@ def test_fallback_prints_one_line_notice():
     """In a fresh process with only a broken library on offer, the tracer falls back to
     numpy with one line on stderr and still renders."""
     code = (
-        "import mpib_validate.compositor.backend as b\n"
+        "import mpib_validate.runtime.compositor.backend as b\n"
         "b.llvm_candidates = lambda: []\n"
-        "from mpib_validate.cards import trace, samples, generate\n"
+        "from mpib_validate.cards import trace, generate\n"
+        "from mpib_validate.runtime import samples\n"
         "s = generate.generate(0, settings=generate.GeneratorSettings(width=16, height=16))\n"
         "img, meta = trace.trace(s, samples.pinhole(1), backend='llvm')\n"
         "print(meta['backend'])\n")

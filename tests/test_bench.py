@@ -47,7 +47,7 @@ def test_addon_bench_camera_reproduces_the_blur_parameter_and_focus():
     """The add-on suite sets a Blender lens so that the calibration gives the refocus
     suite's A and d_f; the camera model must agree to rounding."""
     from mpib_validate.bench.addon import _camera_for
-    from mpib_validate.camera import blender_camera
+    from mpib_validate.runtime.camera import blender_camera
 
     lens = _camera_for(74.3, 0.2514, 1920)
     cam = blender_camera(lens["lens_mm"], lens["sensor_mm"], 24.0, "HORIZONTAL", 1920, 1080,

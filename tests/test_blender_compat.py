@@ -1,4 +1,4 @@
-"""mpib_validate.blender.compat on the running Blender (real bpy, real compositor renders).
+"""mpib_validate.runtime.blender.compat on the running Blender (real bpy, real compositor renders).
 
 The default run checks it on the pinned bpy 5.0.1; `make test-blender-versions` runs
 this file on 4.2 LTS, 4.5 LTS and the newest 5.x as well. Each test states the fact
@@ -13,8 +13,8 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
-from mpib_validate.blender import compat as bc
-from mpib_validate.io import exr
+from mpib_validate.runtime.blender import compat as bc
+from mpib_validate.runtime.io import exr
 
 pytestmark = pytest.mark.blender
 

@@ -150,9 +150,9 @@ def test_render_suite_writes_the_folder_and_reuses_it(suite):
     again = B.render_suite(out, [spec], 64, sharp_spp=32, log=lambda *_: pytest.fail("rendered"))
     assert again == [folder] and (folder / "truth.exr").stat().st_mtime_ns == stamp
     # the passes carry the camera as `mpib render` does, so `mpib refocus` needs no lens options
-    from mpib_validate.refocus import load_passes
+    from mpib_validate.runtime.refocus import load_passes
 
-    from mpib_validate.io.camera_header import resolve
+    from mpib_validate.runtime.io.camera_header import resolve
 
     p = load_passes(folder / "passes.exr")
     assert math.isclose(p.camera.image["blur_parameter"], c["blur_parameter"], rel_tol=1e-12)
@@ -170,7 +170,7 @@ def test_render_suite_writes_the_folder_and_reuses_it(suite):
 def test_default_preset_beats_the_sharp_input_at_boundaries(suite):
     """PSNR_ob against Cycles' depth of field: the refocused EXR (as written) is far
     closer than the sharp input, by more than the truth's own noise could move it."""
-    from mpib_validate.refocus import load_passes, refocus
+    from mpib_validate.runtime.refocus import load_passes, refocus
 
     _, spec, folder = suite
     sc = B.load_scene(folder)
@@ -193,7 +193,7 @@ def test_degraded_depth_methods_are_seeded_and_finite(suite):
     """The bench's degraded-depth methods: one image per method, finite, the same on a
     second run (the degradation is seeded per scene), and the degraded depth changes the
     output (the refocus does use it)."""
-    from mpib_validate.refocus import load_passes
+    from mpib_validate.runtime.refocus import load_passes
 
     _, spec, folder = suite
     sc = B.load_scene(folder)
@@ -208,7 +208,7 @@ def test_degraded_depth_methods_are_seeded_and_finite(suite):
     for name in a:
         assert np.isfinite(a[name][0]).all()
         np.testing.assert_array_equal(a[name][0], b[name][0])
-    from mpib_validate.refocus import refocus
+    from mpib_validate.runtime.refocus import refocus
 
     exact = BB.premultiplied(refocus(p, A, d_f).image)
     assert np.abs(a[BB.DEGRADED][0] - exact).max() > 0.05

@@ -1,4 +1,4 @@
-"""The memory estimates of mpib_validate.budget against the peak resident memory of real
+"""The memory estimates of mpib_validate.runtime.budget against the peak resident memory of real
 runs, each in a fresh process (the estimate must neither miss a large job nor refuse an
 ordinary one)."""
 
@@ -11,14 +11,14 @@ import sys
 import numpy as np
 import pytest
 
-from mpib_validate import budget
+from mpib_validate.runtime import budget
 
 MEASURE_REFOCUS = r"""
 import json, os, sys
 import numpy as np
-from mpib_validate import budget
-from mpib_validate.layers.passes import depth_to_disparity
-from mpib_validate.refocus import Passes, refocus, write_result
+from mpib_validate.runtime import budget
+from mpib_validate.runtime.layers.passes import depth_to_disparity
+from mpib_validate.runtime.refocus import Passes, refocus, write_result
 
 case, n, A, preset, out = sys.argv[1], int(sys.argv[2]), float(sys.argv[3]), sys.argv[4], sys.argv[5]
 rng = np.random.default_rng(0)
@@ -79,8 +79,8 @@ def test_layers_dominate_for_random_depth():
     over the frame: 46 planes are 68 full-frame layers at A = 50. The estimate of the
     layers is the bytes of the MPI actually built (256^2; measured within 0.6 %: a
     random pixel may miss a layer's last row or column)."""
-    from mpib_validate.layers.passes import layers_from_passes
-    from mpib_validate.presets import get_preset
+    from mpib_validate.runtime.layers.passes import layers_from_passes
+    from mpib_validate.runtime.presets import get_preset
 
     rng = np.random.default_rng(0)
     D = 1.0 / rng.uniform(1, 10, (1024, 1024))
@@ -100,7 +100,7 @@ def test_binned_intervals_agree_with_the_exact_ones():
     rng = np.random.default_rng(3)
     D = np.concatenate([np.full(1000, 0.05), rng.uniform(0.3, 0.5, 5000), np.full(10, 0.9)])
     step = 2 * 0.5 / 40.0
-    from mpib_validate.layers.passes import _content_intervals
+    from mpib_validate.runtime.layers.passes import _content_intervals
 
     exact = _content_intervals(D, step)
     old = budget.EXACT_INTERVALS_PX
@@ -127,7 +127,7 @@ def test_check_names_the_option_and_the_largest_part():
 
 def test_sample_set_estimate():
     """A 2^20-point Sobol set: measured ~150 B per sample while it is made."""
-    code = ("import os; from mpib_validate.cards import samples\n"
+    code = ("import os; from mpib_validate.runtime import samples\n"
             "rss = int(open('/proc/self/statm').read().split()[1]) * os.sysconf('SC_PAGE_SIZE')\n"
             "s = samples.stratified(1 << 20)\n"
             "hwm = next(l for l in open('/proc/self/status') if l.startswith('VmHWM'))\n"
@@ -142,7 +142,7 @@ def test_sample_set_estimate():
 def test_tiled_blur_constants_follow_the_compositor_batch():
     """budget does not import the compositor's kernels; its batch-sized constants must
     still equal the batch the compositor uses."""
-    from mpib_validate.compositor import kernels
+    from mpib_validate.runtime.compositor import kernels
 
     assert budget.TILED_OUTPUT_BYTES == kernels.BATCH_BYTES
     assert budget.TILED_BLUR_BYTES == 4 * kernels.BATCH_BYTES

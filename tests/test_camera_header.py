@@ -17,11 +17,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mpib_validate.camera import blender_camera
-from mpib_validate.io.camera_header import (NOTE_MARKER, camera_from_header, camera_json,
+from mpib_validate.runtime.camera import blender_camera
+from mpib_validate.runtime.io.camera_header import (NOTE_MARKER, camera_from_header, camera_json,
                                           resolve)
 from mpib_validate.cli import main
-from mpib_validate.io.exr import channels_from_rgba, read_exr, rgba_from, write_exr
+from mpib_validate.runtime.io.exr import channels_from_rgba, read_exr, rgba_from, write_exr
 
 ROOT = Path(__file__).resolve().parent.parent
 LENS = {"lens_mm": 50.0, "sensor_width_mm": 36.0, "sensor_height_mm": 24.0, "sensor_fit": "AUTO",

@@ -1,7 +1,7 @@
 """Chains of slabs (``CompositeSettings.chain_px``): closer to the exact renderer than
 Eq. 1 where Eq. 1 errs on an MPI built from passes, and Eq. 1 itself elsewhere.
 
-The exact reference is :func:`composite.render_exact` on the same passes' MPI with the
+The exact reference is :func:`mpib_validate.cards.mpi.render_exact` on the same passes' MPI with the
 over split (additive groups have no card form; the bench's ``exact-mpi`` does the same).
 Its own aperture noise is measured from two sample sets: a deterministic image ``X``
 against one noisy render ``E`` has ``rms(X - E)^2 = bias^2 + s^2`` with ``s^2`` the
@@ -14,12 +14,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from mpib_validate.cards import samples
+from mpib_validate.runtime import samples
 from mpib_validate.cards.scene import Camera
-from mpib_validate.compositor import composite as C
-from mpib_validate.layers import mpi as M
-from mpib_validate.layers.passes import layers_from_passes
-from mpib_validate.presets import get_preset
+from mpib_validate.runtime.compositor import composite as C
+from mpib_validate.runtime.layers import mpi as M
+from mpib_validate.cards import mpi as CM
+from mpib_validate.runtime.layers.passes import layers_from_passes
+from mpib_validate.runtime.presets import get_preset
 
 DEFAULT = get_preset("default")
 EQ1 = replace(DEFAULT.composite, chain_px=None)
@@ -40,8 +41,8 @@ def _compare(colour, disparity, A, d_f, window):
     mpi, _ = layers_from_passes(colour, disparity, A, DEFAULT.passes)
     over, _ = layers_from_passes(colour, disparity, A, replace(DEFAULT.passes, split="linear"))
     cam = Camera(W, H, A, d_f)
-    ex = C.render_exact(over, cam, samples.stratified(1024, seed=0))[..., :3]
-    ex2 = C.render_exact(over, cam, samples.stratified(1024, seed=1))[..., :3]
+    ex = CM.render_exact(over, cam, samples.stratified(1024, seed=0))[..., :3]
+    ex2 = CM.render_exact(over, cam, samples.stratified(1024, seed=1))[..., :3]
     eq1, s = _bias(C.composite(mpi, A, d_f, EQ1)[..., :3], ex, ex2, window)
     chain, _ = _bias(C.composite(mpi, A, d_f, CHAIN)[..., :3], ex, ex2, window)
     return eq1, chain, s
@@ -130,7 +131,7 @@ def test_chains_on_tiles_match_the_dense_untiled_path(k):
     renormalisation divides by a coverage of at least 1e-3 where it changes the sum,
     but the output is the ratio of colour to normaliser, which rounding moves alike)."""
     from mpib_validate.bench.photosize import photo_passes
-    from mpib_validate.layers.passes import depth_to_disparity
+    from mpib_validate.runtime.layers.passes import depth_to_disparity
 
     colour, depth, A, d_f = photo_passes(3, 768, 512, span_px=24.0)
     mpi, _ = layers_from_passes(colour, depth_to_disparity(depth), A, DEFAULT.passes)

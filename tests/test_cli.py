@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from mpib_validate.io.exr import read_exr, rgba_from
+from mpib_validate.runtime.io.exr import read_exr, rgba_from
 
 
 def mpib(*args, cwd=None):
@@ -64,7 +64,7 @@ def test_backends_reports_json():
 
 
 def test_compare(tmp_path):
-    from mpib_validate.io.exr import channels_from_rgba, write_exr
+    from mpib_validate.runtime.io.exr import channels_from_rgba, write_exr
 
     rng = np.random.default_rng(0)
     a = (0.8 * rng.random((20, 24, 4))).astype(np.float32)  # + 0.1 stays below 1

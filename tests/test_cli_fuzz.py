@@ -20,7 +20,7 @@ from clirun import run
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from mpib_validate.io.exr import ExrError, read_exr, write_exr
+from mpib_validate.runtime.io.exr import ExrError, read_exr, write_exr
 from mpib_validate.cards.generate import GeneratorSettings, generate
 from mpib_validate.cards.scene import save_scene
 

@@ -10,12 +10,14 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from mpib_validate.compositor import composite as C
-from mpib_validate.compositor import kernels as K
-from mpib_validate.layers import mpi as M
-from mpib_validate.cards import samples, trace
-from mpib_validate.camera import Camera
-from mpib_validate.compositor.composite import PLAIN, CompositeSettings
+from mpib_validate.runtime.compositor import composite as C
+from mpib_validate.runtime.compositor import kernels as K
+from mpib_validate.runtime.layers import mpi as M
+from mpib_validate.cards import mpi as CM
+from mpib_validate.runtime import samples
+from mpib_validate.cards import trace
+from mpib_validate.runtime.camera import Camera
+from mpib_validate.runtime.compositor.composite import PLAIN, CompositeSettings
 from mpib_validate.cards.generate import GeneratorSettings, generate
 from mpib_validate.metrics import psnr
 from mpib_validate.cards.scene import Scene
@@ -130,8 +132,8 @@ def test_exact_renderer_equals_the_tracer_on_constant_scenes():
     scene = generate(0, "constant", settings=GeneratorSettings(width=64, height=48))
     smp = samples.stratified(128, seed=4)
     ref, _ = trace.trace(scene, smp, backend="numpy")
-    mpi = M.layers_from_cards(scene)
-    ex = C.render_exact(mpi, scene.camera, smp, backend="numpy")
+    mpi = CM.layers_from_cards(scene)
+    ex = CM.render_exact(mpi, scene.camera, smp, backend="numpy")
     np.testing.assert_array_equal(ex[..., :3] * ex[..., 3:], ref[..., :3] * ref[..., 3:])
 
 
@@ -143,9 +145,9 @@ def test_eq1_gap_shrinks_with_subapertures():
     sit up to 3 dB above it). Each step must gain 3 dB until it reaches that floor."""
     scene = generate(0, "constant", settings=GeneratorSettings(width=128, height=128))
     cam = scene.camera
-    mpi = M.layers_from_cards(scene)
-    ex = np.clip(C.render_exact(mpi, cam, samples.stratified(1024, seed=0)), 0, 1)
-    ex2 = np.clip(C.render_exact(mpi, cam, samples.stratified(1024, seed=1)), 0, 1)
+    mpi = CM.layers_from_cards(scene)
+    ex = np.clip(CM.render_exact(mpi, cam, samples.stratified(1024, seed=0)), 0, 1)
+    ex2 = np.clip(CM.render_exact(mpi, cam, samples.stratified(1024, seed=1)), 0, 1)
     noise_floor = psnr(ex, ex2)
     gaps = [psnr(ex, np.clip(C.render_subapertures(mpi, cam.blur_parameter,
                                                    cam.focus_disparity, k), 0, 1))
@@ -164,7 +166,7 @@ def test_fast_paths_agree_with_the_plain_path(family):
     relative); 120 dB allows an RMS error of 1e-6 of the peak, 30x that noise."""
     scene = generate(1, family, case="large-blur", settings=GeneratorSettings(width=96, height=96))
     cam = scene.camera
-    mpi = M.layers_from_cards(scene)
+    mpi = CM.layers_from_cards(scene)
     plain = C.composite(mpi, cam.blur_parameter, cam.focus_disparity, PLAIN)
     for name in ("fft", "crop", "fast"):
         out = C.composite(mpi, cam.blur_parameter, cam.focus_disparity, SETTINGS[name])
@@ -182,7 +184,7 @@ def test_reduced_resolution_error_is_bounded_on_ldr_content():
         scene = generate(seed, "constant", case="large-blur",
                          settings=GeneratorSettings(width=96, height=96, hdr_probability=0.0))
         cam = scene.camera
-        mpi = M.layers_from_cards(scene)
+        mpi = CM.layers_from_cards(scene)
         plain = C.composite(mpi, cam.blur_parameter, cam.focus_disparity, SETTINGS["fft"])
         out = C.composite(mpi, cam.blur_parameter, cam.focus_disparity, SETTINGS["fast-reduced"])
         assert psnr(np.clip(plain, 0, 1), np.clip(out, 0, 1)) > 50.0
@@ -313,7 +315,7 @@ def test_drjit_blur_agrees_with_numpy(device):
     we allow 1e-6 of the peak."""
     scene = generate(2, "varying", settings=GeneratorSettings(width=64, height=48))
     cam = scene.camera
-    mpi = M.layers_from_cards(scene)
+    mpi = CM.layers_from_cards(scene)
     a = C.composite(mpi, cam.blur_parameter, cam.focus_disparity, FAST)
     b = C.composite(mpi, cam.blur_parameter, cam.focus_disparity,
                     CompositeSettings(backend=device))
@@ -334,7 +336,7 @@ def test_separable_bilinear_equals_map_coordinates():
     (order 1, edges clamped), to float32 rounding, also for points beyond the edges."""
     from scipy import ndimage
 
-    from mpib_validate.compositor.composite import _bilinear_separable
+    from mpib_validate.runtime.compositor.composite import _bilinear_separable
 
     rng = np.random.default_rng(3)
     a = rng.random((9, 13, 4)).astype(np.float32)
@@ -375,7 +377,7 @@ def test_the_blur_threads_change_nothing(monkeypatch):
     laid in their order: the composite equals the one-thread composite to the bit, on
     layers that overlap everywhere (an "over" out of order would change it) and on an
     MPI of additive slabs from passes (group sums and the chain)."""
-    from mpib_validate.layers.passes import PassesSettings, layers_from_passes
+    from mpib_validate.runtime.layers.passes import PassesSettings, layers_from_passes
 
     rng = np.random.default_rng(11)
     dense = _random_mpi(rng, 10, 150, 210, list(np.linspace(0.1, 0.9, 10)))

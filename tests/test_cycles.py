@@ -19,9 +19,10 @@ import pytest
 bpy = pytest.importorskip("bpy")
 
 from mpib_validate.blender import cycles
-from mpib_validate.compositor import defocus_node as dn
-from mpib_validate.cards import samples, trace
-from mpib_validate.camera import Camera  # noqa: E402
+from mpib_validate.baselines import defocus_node as dn
+from mpib_validate.runtime import samples
+from mpib_validate.cards import trace
+from mpib_validate.runtime.camera import Camera  # noqa: E402
 from mpib_validate.cards.generate import GeneratorSettings, generate  # noqa: E402
 from mpib_validate.cards.scene import Card, Plane, Scene  # noqa: E402
 
@@ -423,8 +424,8 @@ def test_defocus_node_scores(family):
 def test_render_result_writes_like_the_tracer(tmp_path):
     """``render_result`` fills the tracer's result type, so ``mpib render --engine cycles``
     can write it with render_io.write_render (EXR with every pass)."""
-    from mpib_validate.io.exr import read_exr
-    from mpib_validate.io.render_io import write_render
+    from mpib_validate.runtime.io.exr import read_exr
+    from mpib_validate.cards.render_io import write_render
 
     sc = small_scene("varying")
     res = cycles.render_result(sc, 16)

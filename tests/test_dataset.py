@@ -10,7 +10,7 @@ import pytest
 
 from mpib_validate.cards.dataset import build_dataset, sample_dir
 from mpib_validate.executor import make_executor
-from mpib_validate.io.exr import read_exr
+from mpib_validate.runtime.io.exr import read_exr
 
 SMALL = dict(family="mixed", size=(32, 24), spp=16)
 

@@ -1,4 +1,4 @@
-"""Tests for mpib_validate.io.exr: real OpenEXR files in tmp_path, no mocks."""
+"""Tests for mpib_validate.runtime.io.exr: real OpenEXR files in tmp_path, no mocks."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from mpib_validate.io.exr import (
+from mpib_validate.runtime.io.exr import (
     ExrError,
     ExrImage,
     channels_from_rgba,

@@ -205,7 +205,7 @@ def _on_a_terminal(args, timeout=300) -> tuple[int, str]:
 
 def test_progress_bars_on_a_terminal(tmp_path):
     """refocus printed nothing for minutes and dataset only its last line."""
-    from mpib_validate.io.exr import channels_from_rgba, write_exr
+    from mpib_validate.runtime.io.exr import channels_from_rgba, write_exr
 
     rgb = np.full((32, 48, 3), 0.5, np.float32)
     depth = np.full((32, 48), 4.0, np.float32)

@@ -10,7 +10,7 @@ import OpenEXR
 import pytest
 from clirun import one_line_error, run
 
-from mpib_validate.io.exr import channels_from_rgba, read_exr, rgba_from, write_exr
+from mpib_validate.runtime.io.exr import channels_from_rgba, read_exr, rgba_from, write_exr
 
 H, W = 12, 16
 

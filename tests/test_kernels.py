@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from mpib_validate.compositor import kernels as K
+from mpib_validate.runtime.compositor import kernels as K
 
 
 def _tent_cdf(t):

@@ -5,7 +5,7 @@ sphere at z = 1.2 whose shadow falls on the wall, and a thin wire (about one pix
 wide) at z = 1; a sun with no angle (one deterministic shadow ray) and no bounces, so
 the only noise is the anti-aliasing and lens sampling. One F12 render gives the
 artist's view layer (the single pass) and the ``mpib_group_<k>`` layers of
-:mod:`mpib_validate.blender.layers`, with the same seed; Cycles' depth of field of the
+:mod:`mpib_validate.runtime.blender.layers`, with the same seed; Cycles' depth of field of the
 same scene (focus on the wall) is the truth. A glass ball before the wall (with
 glossy and transmission bounces) measures what the Indirect Only trick gets wrong.
 """
@@ -17,13 +17,13 @@ import math
 import numpy as np
 import pytest
 
-from mpib_validate.blender import layers as blender_layers
+from mpib_validate.runtime.blender import layers as blender_layers
 
 from mpib_validate import cli, metrics
-from mpib_validate.io.exr import read_exr, rgba_from, write_exr
-from mpib_validate.layers.layered import composite_over, group_disparity, layers_from_layered_passes
-from mpib_validate.layers.passes import PassesSettings, depth_to_disparity
-from mpib_validate.refocus import Passes, load_layered_passes, refocus
+from mpib_validate.runtime.io.exr import read_exr, rgba_from, write_exr
+from mpib_validate.runtime.layers.layered import composite_over, group_disparity, layers_from_layered_passes
+from mpib_validate.runtime.layers.passes import PassesSettings, depth_to_disparity
+from mpib_validate.runtime.refocus import Passes, load_layered_passes, refocus
 
 W, H = 64, 48
 LENS_MM, SENSOR_MM, FSTOP, Z_WALL = 100.0, 36.0, 1.0, 3.0

@@ -19,9 +19,10 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
-from mpib_validate.compositor import backend as _backend
-from mpib_validate.cards import samples, trace
-from mpib_validate.camera import Camera
+from mpib_validate.runtime.compositor import backend as _backend
+from mpib_validate.runtime import samples
+from mpib_validate.cards import trace
+from mpib_validate.runtime.camera import Camera
 from mpib_validate.cards.generate import FAMILIES, HARD_CASES, GeneratorSettings, generate
 from mpib_validate.cards.scene import Card, Plane, Scene
 
@@ -340,7 +341,7 @@ def test_mitsuba_command_renders_the_xml(fast_variant, three_card_scene, tmp_pat
     mitsuba_cmd = os.path.join(os.path.dirname(sys.executable), "mitsuba")
     if not os.path.exists(mitsuba_cmd):
         pytest.skip("no mitsuba executable beside the interpreter")
-    from mpib_validate.io.exr import read_exr
+    from mpib_validate.runtime.io.exr import read_exr
 
     path = ms.to_xml(three_card_scene, tmp_path, spp=16)
     out = tmp_path / "out.exr"
@@ -356,10 +357,10 @@ def test_mitsuba_command_renders_the_xml(fast_variant, three_card_scene, tmp_pat
 
 
 def test_render_result_feeds_the_cli_writer(fast_variant, three_card_scene, tmp_path):
-    """render_result gives a TraceResult that mpib_validate.io.render_io writes unchanged
+    """render_result gives a TraceResult that mpib_validate.cards.render_io writes unchanged
     (the planned ``mpib render --engine mitsuba``); its all-in-focus pass is exact."""
-    from mpib_validate.io.exr import read_exr
-    from mpib_validate.io.render_io import write_render
+    from mpib_validate.runtime.io.exr import read_exr
+    from mpib_validate.cards.render_io import write_render
 
     res = ms.render_result(three_card_scene, 16, seed=2)
     img, _ = ms.render(three_card_scene, 16, seed=2)

@@ -1,4 +1,4 @@
-"""The MPIB Refocus compositor node group (``mpib_validate.blender.nodegroup``).
+"""The MPIB Refocus compositor node group (``mpib_validate.runtime.blender.nodegroup``).
 
 The graph is described once as data; the same description is emitted into Blender and
 evaluated by a numpy model of the nodes. The Blender tests run real bpy (Cycles on the
@@ -25,9 +25,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mpib_validate.blender import nodegroup as ng
-from mpib_validate.camera import blender_camera
-from mpib_validate.layers.mpi import adaptive_planes, plane_spacing, split_between_planes
+from mpib_validate.runtime.blender import nodegroup as ng
+from mpib_validate.runtime.camera import blender_camera
+from mpib_validate.runtime.layers.mpi import adaptive_planes, plane_spacing, split_between_planes
 
 ROOT = Path(__file__).resolve().parent.parent
 SESSION = ROOT / "tests" / "blender" / "nodegroup_session.py"
@@ -231,7 +231,7 @@ def test_an_emitter_between_two_slices_keeps_its_energy():
 @pytest.mark.parametrize("slab_px", [0.0, 5.0, 100.0])
 def test_slice_layers_are_the_mpi_split(slab_px):
     """Each slice's alpha, summed over its layers (one per slab it borders), is the
-    additive split mpib_validate.layers.mpi.split_between_planes gives the pixel's
+    additive split mpib_validate.runtime.layers.mpi.split_between_planes gives the pixel's
     (dilated) disparity: the near plane ``u alpha``, the far one ``(1 - u) alpha``; each
     interval's two shares sit in the same slab. Slabs: every interval alone (0 px), two
     slabs (5 px: the radius spans of the intervals are 1.75, 2.5 and 4.5 px), one."""
@@ -349,7 +349,7 @@ def _render_args(work: Path, **kw) -> dict:
 
 
 def _passes(path):
-    from mpib_validate.io.exr import find_pass, read_exr, rgba_from
+    from mpib_validate.runtime.io.exr import find_pass, read_exr, rgba_from
 
     img = read_exr(path)
     layer = next(p for p in sorted({n.split(".")[0] for n in img.channels}) if p != "Composite")
@@ -577,7 +577,7 @@ def newest(tmp_path_factory):
 
 def test_newest_group_equals_the_numpy_model(newest):
     """The newest 5.x (5.3 when this was written; its compositor API moved again, see
-    mpib_validate.blender.compat): Convolve + Inpaint on both keyed frames, and Auto
+    mpib_validate.runtime.blender.compat): Convolve + Inpaint on both keyed frames, and Auto
     (Bokeh Blur for the small blurs) + Inpaint on the sphere, equal the model."""
     _, cards, sphere, _ = newest
     assert cards["version"].startswith("5.") and cards["spec"]["blur"] == "convolve"

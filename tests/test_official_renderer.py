@@ -9,9 +9,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mpib_validate.compositor import kernels as K
-from mpib_validate.compositor.composite import CompositeSettings, composite
-from mpib_validate.layers.mpi import MPI, uniform_planes
+from mpib_validate.runtime.compositor import kernels as K
+from mpib_validate.runtime.compositor.composite import CompositeSettings, composite
+from mpib_validate.runtime.layers.mpi import MPI, uniform_planes
 
 #: float32 rounding of the two implementations, for values in [0, 1] with a normaliser of
 #: exactly 1 (an opaque far plane covers every pixel): each blurred value is a sum of at
@@ -24,7 +24,7 @@ FLOAT32_TOL = 3e-5
 @pytest.fixture(scope="module")
 def renderer():
     pytest.importorskip("torch")
-    from mpib_validate.compositor.official_torch import OfficialRenderer
+    from mpib_validate.baselines.official_torch import OfficialRenderer
 
     # one thread: the same computation (the official set-up's 2 threads only split the
     # work); on an oversubscribed machine 2-thread OpenMP barriers stall tiny convolutions
@@ -51,7 +51,7 @@ def _random_mpi(rng, H=40, W=50, d_max=0.8, planes=(0, 5, 12, 20, 31)):
 def test_mapping_keeps_every_radius():
     """K |d_n - d_fn| = A |d - d_f| for every plane, and the uniform planes land on the
     official grid exactly (no torch needed for the mapping)."""
-    from mpib_validate.compositor.official_torch import to_official
+    from mpib_validate.baselines.official_torch import to_official
 
     mpi = _random_mpi(np.random.default_rng(1))
     A, d_f, d_max = 30.0, 0.33, 0.8
@@ -71,7 +71,7 @@ def test_mapping_keeps_every_radius():
 
 
 def test_grouped_mpi_is_refused():
-    from mpib_validate.compositor.official_torch import to_official
+    from mpib_validate.baselines.official_torch import to_official
 
     mpi = MPI(4, 4, 0)
     mpi.add(0.2, np.ones((4, 4, 4), np.float32), 0, 0, group=0)
@@ -82,7 +82,7 @@ def test_grouped_mpi_is_refused():
 def test_agrees_with_our_eq1_on_the_soft_kernels(renderer):
     """With the same soft disks at integer radii and the same planes, the torch renderer
     and our Eq. 1 (plain direct path) compute the same image, up to float32 rounding."""
-    from mpib_validate.compositor.official_torch import to_official
+    from mpib_validate.baselines.official_torch import to_official
 
     mpi = _random_mpi(np.random.default_rng(0))
     A, d_f = 30.0, uniform_planes(32, 0.8)[12]
@@ -100,7 +100,7 @@ def test_against_our_exact_kernels_within_the_kernel_difference(renderer):
     kernel is the identity in both) and a foreground of alpha ``a`` and colour ``c`` at
     radius r, Eq. 1 gives ``B = b (1 - a * K) + (c a) * K``, so
     ``|B_soft - B_exact| = |sum_q (K_s - K_e)[q] a (c - b)| <= ||K_s - K_e||_1 max |c - b|``."""
-    from mpib_validate.compositor.official_torch import to_official
+    from mpib_validate.baselines.official_torch import to_official
 
     rng = np.random.default_rng(3)
     H, W, d_max = 48, 48, 1.0
@@ -131,7 +131,7 @@ def test_against_our_exact_kernels_within_the_kernel_difference(renderer):
 def test_single_plane_in_focus_returns_the_input(renderer):
     """One plane in focus: radius 0 (the identity), so the output is the straight colour
     wherever alpha > 0; the division of c a by a is exact to 1 ulp (relative 1.2e-7)."""
-    from mpib_validate.compositor.official_torch import to_official
+    from mpib_validate.baselines.official_torch import to_official
 
     rng = np.random.default_rng(5)
     H, W = 24, 30
@@ -151,7 +151,7 @@ def test_constant_mpi_and_energy(renderer):
     (2) an opaque out-of-focus plane keeps its energy: a bright square well inside the
     frame (farther than the 12 px radius from every edge) sums to the same after the blur.
     Tolerance: float32 rounding as in FLOAT32_TOL (values <= 1, normaliser 1)."""
-    from mpib_validate.compositor.official_torch import to_official
+    from mpib_validate.baselines.official_torch import to_official
 
     H, W = 40, 40
     grid = uniform_planes(32, 1.0)

@@ -5,14 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mpib_validate.compositor import composite as C
-from mpib_validate.cards import evaluate, samples, trace
-from mpib_validate.layers import fill
-from mpib_validate.layers import mpi as M
-from mpib_validate.camera import Camera
+from mpib_validate.runtime.compositor import composite as C
+from mpib_validate.cards import evaluate, trace
+from mpib_validate.runtime import samples
+from mpib_validate.runtime.layers import fill
+from mpib_validate.runtime.layers import mpi as M
+from mpib_validate.cards import mpi as CM
+from mpib_validate.runtime.camera import Camera
 from mpib_validate.cards.generate import GeneratorSettings, generate
 from mpib_validate.metrics import psnr
-from mpib_validate.layers.passes import PassError, PassesSettings, depth_to_disparity, layers_from_passes
+from mpib_validate.runtime.layers.passes import PassError, PassesSettings, depth_to_disparity, layers_from_passes
 from mpib_validate.cards.scene import Card, Plane, Scene
 
 from conftest import opaque_card
@@ -68,7 +70,7 @@ def test_colour_depth_path_matches_exact_layers_away_from_boundaries(rendered):
         b = int(np.ceil(scene.max_blur_radius())) + 2
         inner = np.zeros_like(mask)
         inner[b:-b, b:-b] = True
-        exact = C.composite(M.layers_from_cards(scene), cam.blur_parameter, cam.focus_disparity)
+        exact = C.composite(CM.layers_from_cards(scene), cam.blur_parameter, cam.focus_disparity)
         mpi, _ = layers_from_passes(res.all_in_focus[..., :3], D, cam.blur_parameter)
         out = C.composite(mpi, cam.blur_parameter, cam.focus_disparity)
         assert psnr(np.clip(exact, 0, 1), np.clip(out, 0, 1), ~mask & inner) > 35.0, (seed, family)

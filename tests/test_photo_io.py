@@ -14,11 +14,12 @@ import pytest
 from PIL import Image
 
 from clirun import one_line_error, run
-from mpib_validate.camera import OFFICIAL_BINS
-from mpib_validate.io.exr import read_exr
-from mpib_validate.io.photo import (SRGB_KNEE_ENCODED, SRGB_KNEE_LINEAR, Encoding, PhotoError, encode_photo,
-                                    linear_to_srgb, quantise, read_disparity, read_photo, srgb_to_linear,
-                                    write_photo)
+from mpib_validate.runtime.camera import OFFICIAL_BINS
+from mpib_validate.runtime.io.exr import read_exr
+from mpib_validate.runtime.io.colour import (SRGB_KNEE_ENCODED, SRGB_KNEE_LINEAR, linear_to_srgb,
+                                             srgb_to_linear)
+from mpib_validate.runtime.io.photo import (Encoding, PhotoError, encode_photo, quantise, read_disparity,
+                                            read_photo, write_photo)
 
 H, W = 64, 96
 
@@ -120,7 +121,7 @@ def test_16_bit_png_filters_are_undone(tmp_path):
     import struct
     import zlib
 
-    from mpib_validate.io.png16 import _png_chunk
+    from mpib_validate.runtime.io.png16 import _png_chunk
 
     def _paeth(a, b, c):  # the PNG spec's predictor, one byte at a time
         p = a + b - c
@@ -363,7 +364,7 @@ def test_all_constant_disparity_is_one_plane(tmp_path):
 
 
 def test_float_disparity_and_exr_photo(tmp_path):
-    from mpib_validate.io.exr import write_exr
+    from mpib_validate.runtime.io.exr import write_exr
 
     lin = srgb_to_linear(_texture(9) / 255.0).astype(np.float32)
     write_exr(tmp_path / "p.exr", {"R": lin[..., 0], "G": lin[..., 1], "B": lin[..., 2]})
@@ -434,7 +435,7 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(tmp_path):
 def test_the_input_is_never_overwritten(tmp_path):
     photo = _save(tmp_path / "photo.jpg", _texture(13))
     disp = _save(tmp_path / "disp.png", _disparity_u8())
-    from mpib_validate.io.exr import write_exr
+    from mpib_validate.runtime.io.exr import write_exr
 
     write_exr(tmp_path / "disp.exr", {"Y": np.full((H, W), 0.5, np.float32)})
     exr = tmp_path / "disp.exr"
@@ -449,7 +450,7 @@ def test_the_input_is_never_overwritten(tmp_path):
 
 
 def test_photo_options_are_refused_for_exr_passes(tmp_path):
-    from mpib_validate.io.exr import write_exr
+    from mpib_validate.runtime.io.exr import write_exr
 
     z = np.full((H, W), 2.0, np.float32)
     write_exr(tmp_path / "r.exr", {"R": z, "G": z, "B": z, "Depth.Z": z})
@@ -516,7 +517,7 @@ def test_16_bit_png_keeps_its_icc_profile(tmp_path):
 def test_photo_with_a_depth_exr_and_a_float_tiff_map(tmp_path):
     import tifffile
 
-    from mpib_validate.io.exr import write_exr
+    from mpib_validate.runtime.io.exr import write_exr
 
     a = _texture(18)
     photo = _save(tmp_path / "p.png", a)

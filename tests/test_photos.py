@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from mpib_validate.cards.degrade import degrade_disparity
-from mpib_validate.layers.passes import PassesSettings, layers_from_passes
-from mpib_validate.layers.refine import guided_filter, refine_disparity
+from mpib_validate.runtime.layers.passes import PassesSettings, layers_from_passes
+from mpib_validate.runtime.layers.refine import guided_filter, refine_disparity
 
 
 def _two_regions(seed=0, size=64, edge=32):
@@ -57,7 +57,7 @@ def test_degradation_spreads_and_shifts_the_edge():
 
 def test_guided_filter_with_a_flat_guide_is_the_box_mean_of_the_box_mean():
     """A constant guide has zero variance: a = 0, b = mean(p), q = box(box(p))."""
-    from mpib_validate.layers.refine import box_mean
+    from mpib_validate.runtime.layers.refine import box_mean
 
     rng = np.random.default_rng(0)
     p = rng.random((20, 24))
@@ -93,7 +93,7 @@ def test_refinement_moves_a_blurred_edge_back_onto_the_colour_edge():
 def test_refinement_changes_only_its_uncertain_band():
     """The loss decomposition of the photos suite gives the exact disparity back on
     `uncertain_band`; that is where the refinement acts, and nowhere else."""
-    from mpib_validate.layers.refine import uncertain_band
+    from mpib_validate.runtime.layers.refine import uncertain_band
 
     colour, D = _two_regions()
     A = 40.0
@@ -152,7 +152,7 @@ def test_oracle_disparities_give_back_exact_values_on_their_region_only():
     from scipy import ndimage
 
     from mpib_validate.bench import photos
-    from mpib_validate.layers.refine import uncertain_band
+    from mpib_validate.runtime.layers.refine import uncertain_band
 
     colour, D = _two_regions(size=64, edge=30)
     colour = colour.copy()
@@ -176,7 +176,7 @@ def test_refinement_on_tiles_equals_the_whole_image(monkeypatch):
     """The guided filter runs on boxes around the edges with a 2 r margin; with one tile
     the size of the image the result must be the same: it is a threshold of the filter
     output (which differs by rounding at most) and the windows' extremes (exact)."""
-    from mpib_validate.layers import refine
+    from mpib_validate.runtime.layers import refine
 
     colour, D = _two_regions(size=96, edge=40)
     pred = degrade_disparity(D, 2)
@@ -190,7 +190,7 @@ def test_side_values_on_boxes_equal_the_whole_image(monkeypatch):
     the boxes of the band's tiles grown by twice their reach; two objects far apart make
     two boxes that do not cover the image, and one tile the size of the image one box:
     the same disparity, bit for bit."""
-    from mpib_validate.layers import refine
+    from mpib_validate.runtime.layers import refine
 
     rng = np.random.default_rng(5)
     size = 224
@@ -213,7 +213,7 @@ def test_refinement_in_small_blocks_equals_large_ones(monkeypatch):
     """A large photograph's edge boxes are cut into blocks (refine.BLOCK_PX) to bound the
     working memory; blocks of 64 px, each with its own margin, give the disparity of
     blocks larger than the image, bit for bit."""
-    from mpib_validate.layers import refine
+    from mpib_validate.runtime.layers import refine
 
     colour, D = _two_regions(size=160, edge=70)
     pred = degrade_disparity(D, 4)
@@ -229,7 +229,7 @@ def test_side_values_reach_outside_the_band_tiles():
     """A band that fills its tiles exactly (columns 32-63): the nearest pixels outside it
     lie in the neighbouring tiles, which the box's margin must hold; the boxed result
     equals the whole image's."""
-    from mpib_validate.layers import refine
+    from mpib_validate.runtime.layers import refine
 
     H, W = 64, 128
     x = np.arange(W)[None, :] * np.ones((H, 1))
@@ -250,7 +250,7 @@ def test_side_values_reach_outside_the_band_tiles():
 
 
 def test_refocus_takes_the_refine_option():
-    from mpib_validate.refocus import Passes, refocus
+    from mpib_validate.runtime.refocus import Passes, refocus
 
     colour, D = _two_regions()
     pred = np.roll(degrade_disparity(D, 0, blur_px=2.0, down=1, shift_px=0.0, noise=0.0), 2, 1)

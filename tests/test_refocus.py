@@ -10,14 +10,15 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from mpib_validate.compositor import baselines
+from mpib_validate.baselines import classical as baselines
 
-from mpib_validate.cards import samples, trace
-from mpib_validate.io.exr import channels_from_rgba, read_exr, rgba_from, write_exr
+from mpib_validate.runtime import samples
+from mpib_validate.cards import trace
+from mpib_validate.runtime.io.exr import channels_from_rgba, read_exr, rgba_from, write_exr
 from mpib_validate.cards.generate import GeneratorSettings, generate
 from mpib_validate.metrics import psnr
-from mpib_validate.layers.passes import depth_to_disparity
-from mpib_validate.io.render_io import write_render
+from mpib_validate.runtime.layers.passes import depth_to_disparity
+from mpib_validate.cards.render_io import write_render
 
 
 def mpib(*args):
@@ -192,7 +193,7 @@ def test_baselines_run_on_a_card_scene(rendered, name):
 def test_refocus_reports_progress_and_can_be_cancelled(rendered, preset):
     """The progress callback rises from 0 to 1 and does not change the result; raising
     from it stops the work (the add-on's Esc)."""
-    from mpib_validate.refocus import Cancelled, load_passes, refocus
+    from mpib_validate.runtime.refocus import Cancelled, load_passes, refocus
 
     d, scene, res = rendered
     passes = load_passes(d / "trace.exr")
@@ -261,7 +262,7 @@ def test_the_inputs_pixel_model_picks_the_kernel(rendered, tmp_path):
     4 px: the continuous kernel adds r^2/4 = 4 px^2 (within 0.02 px^2, its accuracy,
     see test_kernels), the canonical one 1/6 px^2 more (the bilinear splat's term at this
     radius, 0.163 measured)."""
-    from mpib_validate.refocus import Passes, load_passes, pixel_model_of, refocus
+    from mpib_validate.runtime.refocus import Passes, load_passes, pixel_model_of, refocus
 
     d, scene, res = rendered
     assert load_passes(d / "trace.exr").pixel_model == "texel"

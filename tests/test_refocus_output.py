@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from mpib_validate.compositor import composite as C
-from mpib_validate.io.exr import read_exr, rgba_from
-from mpib_validate.layers.passes import (PassesSettings, depth_to_disparity, known_background_mask,
+from mpib_validate.runtime.compositor import composite as C
+from mpib_validate.runtime.io.exr import read_exr, rgba_from
+from mpib_validate.runtime.layers.passes import (PassesSettings, depth_to_disparity, known_background_mask,
                                   layers_from_passes)
-from mpib_validate.layers import fill as _fill
-from mpib_validate.refocus import Passes, refocus, write_result
+from mpib_validate.runtime.layers import fill as _fill
+from mpib_validate.runtime.refocus import Passes, refocus, write_result
 
 
 def _ramp_passes(h=48, w=64, transparent_sky=False):
@@ -206,7 +206,7 @@ def test_a_thin_wire_blurs_away_instead_of_leaving_sharp_remnants():
     is rows where no pixel centre is covered at all) and mean error 0.008 against 0.013.
     Required: worst below 0.28 and mean below 0.011, between the two."""
     from scipy import signal
-    from mpib_validate.compositor.kernels import disk_kernel
+    from mpib_validate.runtime.compositor.kernels import disk_kernel
 
     A, df = 20.0, 0.2
     passes, cov = _wire()
@@ -219,8 +219,8 @@ def test_a_thin_wire_blurs_away_instead_of_leaving_sharp_remnants():
 
 
 def test_slabs_merge_consecutive_groups_within_their_span():
-    from mpib_validate.compositor.composite import _slabs
-    from mpib_validate.layers.mpi import Layer
+    from mpib_validate.runtime.compositor.composite import _slabs
+    from mpib_validate.runtime.layers.mpi import Layer
 
     z = np.zeros((1, 1, 4), np.float32)
     layers = [Layer(d, z, 0, 0, g) for d, g in

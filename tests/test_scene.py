@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from mpib_validate.cards import samples, trace
-from mpib_validate.camera import Camera, ThinLens
-from mpib_validate.io.exr import write_exr, channels_from_rgba
+from mpib_validate.runtime import samples
+from mpib_validate.cards import trace
+from mpib_validate.runtime.camera import Camera, ThinLens
+from mpib_validate.runtime.io.exr import write_exr, channels_from_rgba
 from mpib_validate.cards.generate import generate
 from mpib_validate.cards.scene import Plane, SceneError, load_scene, save_scene
 
@@ -188,7 +189,7 @@ def test_duplicate_card_names(tmp_path):
 
 
 def test_blender_camera_sensor_fits():
-    from mpib_validate.camera import blender_camera
+    from mpib_validate.runtime.camera import blender_camera
 
     # 50 mm, f/2, 36x24 sensor, 640x480: f_px = 50/36*640, R = 0.05/4 m
     c = blender_camera(50, 36, 24, "HORIZONTAL", 640, 480, 2.0, 4.0)

@@ -1,4 +1,4 @@
-"""Refocus from a cached MPI (mpib_validate.session) and `mpib refocus --mpi-cache`."""
+"""Refocus from a cached MPI (mpib_validate.runtime.session) and `mpib refocus --mpi-cache`."""
 
 from __future__ import annotations
 
@@ -8,13 +8,14 @@ import numpy as np
 import pytest
 
 from clirun import one_line_error, run
-from mpib_validate.cards import samples, trace
+from mpib_validate.runtime import samples
+from mpib_validate.cards import trace
 from mpib_validate.cards.generate import GeneratorSettings, generate
-from mpib_validate.io.exr import read_exr, write_exr, channels_from_rgba
-from mpib_validate.io.render_io import write_render
+from mpib_validate.runtime.io.exr import read_exr, write_exr, channels_from_rgba
+from mpib_validate.cards.render_io import write_render
 from mpib_validate.metrics import psnr
-from mpib_validate.refocus import load_passes, refocus
-from mpib_validate.session import (REUSE_DOWN_TO, RefocusSession, downsample_mpi,
+from mpib_validate.runtime.refocus import load_passes, refocus
+from mpib_validate.runtime.session import (REUSE_DOWN_TO, RefocusSession, downsample_mpi,
                                    passes_digest, preview_factor)
 
 
@@ -74,7 +75,7 @@ def test_downsampling_keeps_each_layers_energy_and_box():
     rng = np.random.default_rng(3)
     rgba = rng.random((3, 18, 22, 4)).astype(np.float32)
     rgba[1, :5] = 0.0  # a layer that does not reach the top edge
-    from mpib_validate.layers.mpi import MPI
+    from mpib_validate.runtime.layers.mpi import MPI
 
     mpi = MPI.from_dense([0.1, 0.2, 0.3], rgba)
     small = downsample_mpi(mpi, 4)
@@ -93,7 +94,7 @@ def test_downsampling_keeps_each_layers_energy_and_box():
 def _block_aligned_passes(H=64, W=96):
     """Smooth textures, a foreground rectangle (1.5 m) before a wall (6 m) whose edges lie
     on the 4x4 block grid, so that no preview pixel straddles a depth edge."""
-    from mpib_validate.refocus import Passes
+    from mpib_validate.runtime.refocus import Passes
 
     y, x = np.mgrid[0:H, 0:W] / 16.0
     bg = np.stack([0.5 + 0.3 * np.sin(x), 0.5 + 0.3 * np.cos(y), 0.4 + 0.2 * np.sin(x + y)], -1)
@@ -139,7 +140,7 @@ def test_a_quick_preview_before_the_mpi_exists_shows_the_same_focus(A, d_f):
 def test_preview_sizes_round_up_and_scales_must_be_whole_fractions(scene_file):
     d, cam = scene_file
     passes = load_passes(d / "in.exr")
-    from mpib_validate.refocus import Passes
+    from mpib_validate.runtime.refocus import Passes
 
     cut = Passes(passes.colour[:70, :93], passes.depth[:70, :93], "c", "d")
     s = RefocusSession(cut)

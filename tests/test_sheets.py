@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mpib_validate.layers import mpi as M
+from mpib_validate.runtime.layers import mpi as M
 
 
 def _shares(sh, planes, split, snap, wc):

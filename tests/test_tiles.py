@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from mpib_validate.bench.photosize import photo_passes
-from mpib_validate.compositor import composite as C
-from mpib_validate.layers import mpi as M
-from mpib_validate.layers.passes import PassesSettings, depth_to_disparity, layers_from_passes
+from mpib_validate.runtime.compositor import composite as C
+from mpib_validate.runtime.layers import mpi as M
+from mpib_validate.runtime.layers.passes import PassesSettings, depth_to_disparity, layers_from_passes
 
 
 @pytest.fixture(scope="module")
@@ -153,7 +153,7 @@ def test_photo_too_large_for_the_limit_is_refused_with_the_estimate(tmp_path):
     the option and the estimate, and writes nothing."""
     from clirun import one_line_error, run
 
-    from mpib_validate.io.exr import channels_from_rgba, write_exr
+    from mpib_validate.runtime.io.exr import channels_from_rgba, write_exr
 
     colour, depth, A, d_f = photo_passes(0, 640, 427)
     write_exr(tmp_path / "in.exr", {**channels_from_rgba(colour),

@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from mpib_validate.cards import samples, trace
-from mpib_validate.camera import Camera
+from mpib_validate.runtime import samples
+from mpib_validate.cards import trace
+from mpib_validate.runtime.camera import Camera
 from mpib_validate.cards.scene import Card, Plane, Scene
 
 from conftest import dot_card, jit_backends, opaque_card

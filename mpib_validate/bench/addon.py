@@ -34,7 +34,7 @@ def _camera_for(A: float, d_f: float, width: int, lens_mm=50.0, sensor_mm=36.0) 
 
 
 def run(out: Path, quick: bool = True) -> dict:
-    from mpib_validate.presets import PRESETS
+    from mpib_validate.runtime.presets import PRESETS
     from mpib_validate.bench.refocus import _hd_input
 
     out.mkdir(parents=True, exist_ok=True)

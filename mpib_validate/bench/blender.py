@@ -22,7 +22,7 @@ focus, each method's time, PSNR, SSIM, PSNR_ob and SSIM_ob (colour clipped to [0
 - ``exact-mpi``: the default preset's MPI (``passes.layers_from_passes``, as
   ``refocus.refocus`` builds it, but with the over split, since additive groups have
   no card form) rendered through every aperture sample
-  (``composite.render_exact``), premultiplied; ``exact-mpi (normalised)`` beside it;
+  (``cards.mpi.render_exact``), premultiplied; ``exact-mpi (normalised)`` beside it;
 - ``truth noise floor``: the PSNR of the truth's own noise, from the two seeds
   (``psnr(a, b) + 20 log10 2``: the mean's noise has a quarter of the pair's MSE).
 
@@ -88,7 +88,7 @@ def boundary_mask(depth: np.ndarray, A: float, d_f: float, window: int = 9) -> n
     ``1/A`` (1 px of blur radius) between 4-neighbours, dilated by the largest blur
     radius in the ``window`` neighbourhood (``metrics.occlusion_mask``)."""
     from mpib_validate import metrics
-    from mpib_validate.layers.passes import depth_to_disparity
+    from mpib_validate.runtime.layers.passes import depth_to_disparity
 
     D = depth_to_disparity(depth)
     b = metrics.boundaries_from_disparity(D, 1.0 / A)
@@ -110,14 +110,14 @@ def method_images(sc, exact_samples: int = 1024, layered=None, degraded: bool = 
     """``{method: (rgb (H, W, 3), seconds)}`` for one :class:`SuiteScene`; ``layered``:
     the path of its layered render (``layers.exr``), if any; ``degraded``: also the
     methods on a degraded depth (:func:`degraded_images`)."""
-    from mpib_validate.cards import samples
+    from mpib_validate.runtime import samples
     from mpib_validate.blender.scenes import camera, lens
-    from mpib_validate.compositor.composite import render_exact
-    from mpib_validate.layers.passes import depth_to_disparity, layers_from_passes
-    from mpib_validate.presets import PRESETS, get_preset
-    from mpib_validate.refocus import load_layered_passes, load_passes, refocus
+    from mpib_validate.cards.mpi import render_exact
+    from mpib_validate.runtime.layers.passes import depth_to_disparity, layers_from_passes
+    from mpib_validate.runtime.presets import PRESETS, get_preset
+    from mpib_validate.runtime.refocus import load_layered_passes, load_passes, refocus
 
-    from mpib_validate.io.camera_header import resolve
+    from mpib_validate.runtime.io.camera_header import resolve
 
     path = sc.folder / "passes.exr"
     passes = load_passes(path)
@@ -138,7 +138,7 @@ def method_images(sc, exact_samples: int = 1024, layered=None, degraded: bool = 
     import importlib.util
 
     if importlib.util.find_spec("bpy") is not None:
-        from mpib_validate.compositor.defocus_node import defocus
+        from mpib_validate.baselines.defocus_node import defocus
 
         rgb, seconds = defocus(passes.colour, passes.depth, lens(sc.spec))
         out[NODE] = (rgb, seconds)
@@ -176,8 +176,8 @@ def degraded_images(sc, passes, A: float, d_f: float) -> dict:
     from mpib_validate.bench.photos import disparity_to_depth, oracle_disparities
     from mpib_validate.blender.scenes import lens
     from mpib_validate.cards.degrade import degrade_disparity
-    from mpib_validate.layers.passes import depth_to_disparity
-    from mpib_validate.refocus import refocus
+    from mpib_validate.runtime.layers.passes import depth_to_disparity
+    from mpib_validate.runtime.refocus import refocus
 
     D = depth_to_disparity(passes.depth, source=passes.depth_source)
     Dg = degrade_disparity(D, degraded_seed(sc))
@@ -195,19 +195,19 @@ def degraded_images(sc, passes, A: float, d_f: float) -> dict:
         res, seconds = _timed(lambda: refocus(po, A, d_f, "default"))
         out[name] = (premultiplied(res.image), seconds)
     if importlib.util.find_spec("bpy") is not None:
-        from mpib_validate.compositor.defocus_node import defocus
+        from mpib_validate.baselines.defocus_node import defocus
 
         out[NODE_DEGRADED] = defocus(passes.colour, depth_g, lens(sc.spec))
     return out
 
 
 def node_group(passes, spec, A: float):
-    """The MPIB Refocus compositor node group (:mod:`mpib_validate.blender.nodegroup`) as the
+    """The MPIB Refocus compositor node group (:mod:`mpib_validate.runtime.blender.nodegroup`) as the
     extension's operator makes it on 5.x (slices from this render's depth, Inpaint fill,
     Convolve blur, Bokeh Blur for slices of small radius at this focus), rendered by Blender's compositor on the same passes; its own time
     (the render op of the compositing tree)."""
     from mpib_validate.blender.scenes import lens
-    from mpib_validate.blender.nodegroup import describe, run_on_passes, spec_from_render
+    from mpib_validate.runtime.blender.nodegroup import describe, run_on_passes, spec_from_render
 
     c = lens(spec)
     graph = describe(spec_from_render(passes.depth, A, blur="convolve",
@@ -309,7 +309,7 @@ def crop_strip(sc, images: dict, truth_name: str = "Cycles depth of field (truth
     where the default preset errs most inside the boundary mask (9x9 mean error)."""
     from scipy import ndimage
 
-    from mpib_validate.io.preview import to_uint8
+    from mpib_validate.runtime.io.preview import to_uint8
 
     m = sc.meta
     mask = boundary_mask(sc.depth, m["A"], m["d_f"])
@@ -329,7 +329,7 @@ def crop_strip(sc, images: dict, truth_name: str = "Cycles depth of field (truth
 def write_crops(path: Path, strips: list) -> None:
     from PIL import Image, ImageDraw
 
-    from mpib_validate.io.atomic import atomic_path
+    from mpib_validate.runtime.io.atomic import atomic_path
 
     scale, pad, head = 3, 4, 14
     rows = []
@@ -416,7 +416,7 @@ def run(out: Path, quick: bool = True, config: dict | None = None) -> dict:
 
 
 def _largest_radius(sc) -> float:
-    from mpib_validate.layers.passes import depth_to_disparity
+    from mpib_validate.runtime.layers.passes import depth_to_disparity
 
     D = depth_to_disparity(sc.depth)
     return float(sc.meta["A"] * np.abs(D - sc.meta["d_f"]).max())

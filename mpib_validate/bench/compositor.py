@@ -29,8 +29,9 @@ STRIP_ROWS = 48
 
 
 def _methods():
-    from mpib_validate.layers import mpi as M
-    from mpib_validate.compositor.composite import PLAIN, CompositeSettings
+    from mpib_validate.runtime.layers import mpi as M
+    from mpib_validate.cards import mpi as CM
+    from mpib_validate.runtime.compositor.composite import PLAIN, CompositeSettings
 
     fast = CompositeSettings()
     return {
@@ -65,8 +66,10 @@ def _time(fn, repeats: int):
 
 
 def _scene_rows(scene, label: str, family: str, ref_spp: int, repeats: int) -> list[dict]:
-    from mpib_validate.compositor import composite as C
-    from mpib_validate.cards import samples, trace
+    from mpib_validate.runtime.compositor import composite as C
+    from mpib_validate.runtime import samples
+    from mpib_validate.cards import mpi as CM
+    from mpib_validate.cards import trace
     from mpib_validate.cards.evaluate import card_scene_mask, score
 
     methods, M = _methods()
@@ -76,13 +79,13 @@ def _scene_rows(scene, label: str, family: str, ref_spp: int, repeats: int) -> l
     mask = card_scene_mask(scene)
     noise = score(ref, ref2, mask, with_flip=False)
     layers = {
-        "adaptive": M.layers_from_cards(scene),
-        "uniform32": M.layers_from_cards(scene, planes=M.uniform_planes(32, max(
+        "adaptive": CM.layers_from_cards(scene),
+        "uniform32": CM.layers_from_cards(scene, planes=M.uniform_planes(32, max(
             1.0, scene.disparity_range()[1] * 1.0001))),
     }
     rows = [{"scene": label, "family": family, "method": "reference-noise (two sample sets)",
              "seconds": math.nan, "planes": 0, **noise}]
-    from mpib_validate.compositor.backend import resolve
+    from mpib_validate.runtime.compositor.backend import resolve
 
     for name, (planes, kind, settings, extra) in methods.items():
         if settings is not None and settings.backend != "numpy" \
@@ -95,7 +98,7 @@ def _scene_rows(scene, label: str, family: str, ref_spp: int, repeats: int) -> l
             fn = lambda: C.render_subapertures(mpi, cam.blur_parameter, cam.focus_disparity,
                                                extra, settings)
         else:
-            fn = lambda: C.render_exact(mpi, cam, samples.stratified(extra, seed=7))
+            fn = lambda: CM.render_exact(mpi, cam, samples.stratified(extra, seed=7))
         reps = 1 if name in ("path-plain", "path-crop") or kind == "exact" else repeats
         out, seconds = _time(fn, reps)
         rows.append({"scene": label, "family": family, "method": name, "seconds": seconds,
@@ -114,8 +117,9 @@ def _renderer_rows(scene, label, family, ref, mask, spps=(16, 64, 256)) -> list[
     backends), Mitsuba and Cycles at a sweep of sample counts, scored like the methods."""
     import importlib.util
 
-    from mpib_validate.cards import samples, trace
-    from mpib_validate.compositor.backend import resolve
+    from mpib_validate.runtime import samples
+    from mpib_validate.cards import trace
+    from mpib_validate.runtime.compositor.backend import resolve
     from mpib_validate.cards.evaluate import score
 
     rows = []
@@ -169,14 +173,15 @@ def _hd_worker(cfg: dict) -> dict:
     """One 1080p measurement. ``prepare`` builds the scene's 32-plane MPI and saves it, so
     that the timed workers hold only the MPI and the compositor (their peak memory is the
     compositor's, not the scene generator's)."""
-    from mpib_validate.compositor import composite as C
-    from mpib_validate.layers import mpi as M
-    from mpib_validate.compositor.composite import CompositeSettings
-    from mpib_validate.compositor.kernels import correlate_direct, soft_disk
+    from mpib_validate.cards import mpi as CM
+    from mpib_validate.runtime.compositor import composite as C
+    from mpib_validate.runtime.layers import mpi as M
+    from mpib_validate.runtime.compositor.composite import CompositeSettings
+    from mpib_validate.runtime.compositor.kernels import correlate_direct, soft_disk
 
     if cfg["what"] == "prepare":
         scene = hd_scene()
-        mpi = M.layers_from_cards(scene, planes=M.uniform_planes(
+        mpi = CM.layers_from_cards(scene, planes=M.uniform_planes(
             32, max(1.0, scene.disparity_range()[1])))
         M.save_mpi(mpi, cfg["mpi"])
         cam = scene.camera

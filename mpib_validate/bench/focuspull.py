@@ -2,8 +2,8 @@
 
 On the refocus suite's 1920x1080 input (EXR read beforehand), in one process, interleaved
 (fresh, cached, f-stop, preview, quick preview; repeated): the full pipeline
-(:func:`mpib_validate.refocus.refocus`: MPI build and Eq. 1), the re-composite of the
-cached MPI at a new focus (:class:`mpib_validate.session.RefocusSession`), at a narrower
+(:func:`mpib_validate.runtime.refocus.refocus`: MPI build and Eq. 1), the re-composite of the
+cached MPI at a new focus (:class:`mpib_validate.runtime.session.RefocusSession`), at a narrower
 aperture (0.7 A, reusing the MPI), the quarter-resolution preview, and the quick preview
 of a first pull (before the MPI exists, from subsampled passes). Each is timed by
 wall clock and by CPU time (``time.process_time``, all threads of the process), and the
@@ -32,8 +32,8 @@ def focus_pull_timings(cfg) -> dict:
     """``cfg``: ``input`` (EXR), ``A``, ``d_f``, ``preset``, ``repeats``. Returns the median
     wall and CPU seconds of each kind of render and their ratios to the full pipeline."""
     
-    from mpib_validate.refocus import load_passes, refocus
-    from mpib_validate.session import RefocusSession
+    from mpib_validate.runtime.refocus import load_passes, refocus
+    from mpib_validate.runtime.session import RefocusSession
 
     passes = load_passes(cfg["input"])
     A, d_f, preset = cfg["A"], cfg["d_f"], cfg["preset"]

@@ -61,7 +61,7 @@ def finish(out, name: str, result: dict, markdown) -> dict:
     """Write ``<name>.json`` and ``<name>.md`` (atomically) and print the headlines."""
     import json
 
-    from mpib_validate.io.atomic import write_text
+    from mpib_validate.runtime.io.atomic import write_text
 
     write_text(out / f"{name}.json", json.dumps(result, indent=2, default=float) + "\n")
     write_text(out / f"{name}.md", markdown(result))

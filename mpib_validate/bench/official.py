@@ -3,7 +3,7 @@
 Our Eq. 1 compositor (:func:`compositor.composite.composite` with the default preset's
 :class:`CompositeSettings`: exact fractional-radius kernels, FFT or direct by cost, each
 layer cropped to its content) against the official ``MPIBokehRenderer`` computation
-(:mod:`mpib_validate.compositor.official_torch`: soft disks at integer radii, direct
+(:mod:`mpib_validate.baselines.official_torch`: soft disks at integer radii, direct
 per-plane ``conv2d`` in torch on the CPU with 2 threads), on ONE MPI per case that both
 render: the project's planes are ``uniform_planes(32, d_max)``, which the affine map
 ``d_n = d / d_max``, ``K = A d_max`` puts exactly on the official ``(i + 0.5) / 32``.
@@ -80,9 +80,9 @@ def _nan_to_black(img: np.ndarray) -> tuple[np.ndarray, int]:
 
 def _pair(mpi, A, d_f, d_max, renderer, pairs=2, single_thread=False):
     """Both renderers on one MPI: outputs, interleaved times and the mapping."""
-    from mpib_validate.compositor import official_torch as O
-    from mpib_validate.compositor.composite import composite
-    from mpib_validate.presets import PRESETS
+    from mpib_validate.baselines import official_torch as O
+    from mpib_validate.runtime.compositor.composite import composite
+    from mpib_validate.runtime.presets import PRESETS
 
     settings = PRESETS["default"].composite
     om = O.to_official(mpi, A, d_f, (0.0, d_max), N_PLANES)
@@ -110,10 +110,12 @@ def _pair(mpi, A, d_f, d_max, renderer, pairs=2, single_thread=False):
 
 
 def _scene_rows(seed, family, size, ref_spp, renderer) -> list[dict]:
-    from mpib_validate.cards import samples, trace
+    from mpib_validate.runtime import samples
+    from mpib_validate.cards import trace
     from mpib_validate.cards.evaluate import card_scene_mask, score
     from mpib_validate.cards.generate import GeneratorSettings, generate
-    from mpib_validate.layers import mpi as M
+    from mpib_validate.runtime.layers import mpi as M
+    from mpib_validate.cards import mpi as CM
 
     print(f"bench official: {family}-{seed} ({size}x{size}) ...", flush=True)
     scene = generate(seed, family, settings=GeneratorSettings(width=size, height=size))
@@ -122,7 +124,7 @@ def _scene_rows(seed, family, size, ref_spp, renderer) -> list[dict]:
     ref, _ = trace.trace(scene, samples.stratified(ref_spp, seed=101), notices=False)
     mask = card_scene_mask(scene)
     d_max = max(1.0, scene.disparity_range()[1] * 1.0001)
-    mpi = M.layers_from_cards(scene, planes=M.uniform_planes(N_PLANES, d_max))
+    mpi = CM.layers_from_cards(scene, planes=M.uniform_planes(N_PLANES, d_max))
     out, t, info = _pair(mpi, cam.blur_parameter, cam.focus_disparity, d_max, renderer)
     official, nan = _nan_to_black(out["official"])
     rows = []
@@ -141,7 +143,7 @@ def _scene_rows(seed, family, size, ref_spp, renderer) -> list[dict]:
 
 def crop_mpi(mpi, y0: int, y1: int, x0: int, x1: int):
     """The MPI over the frame window ``[y0, y1) x [x0, x1)`` (frame pixels), margin 0."""
-    from mpib_validate.layers.mpi import MPI, Layer
+    from mpib_validate.runtime.layers.mpi import MPI, Layer
 
     m = mpi.margin
     out = MPI(y1 - y0, x1 - x0, 0)
@@ -160,11 +162,12 @@ def hd_card_mpi(quick: bool):
     """The compositor suite's 1920x1080 card MPI on 32 uniform planes, no margin (both
     renderers replicate the frame edge); quick: its central 480x270 window."""
     from mpib_validate.bench.compositor import hd_scene
-    from mpib_validate.layers import mpi as M
+    from mpib_validate.cards import mpi as CM
+    from mpib_validate.runtime.layers import mpi as M
 
     scene = hd_scene()
     d_max = max(1.0, scene.disparity_range()[1])
-    mpi = M.layers_from_cards(scene, planes=M.uniform_planes(N_PLANES, d_max), margin=0)
+    mpi = CM.layers_from_cards(scene, planes=M.uniform_planes(N_PLANES, d_max), margin=0)
     if quick:
         h, w = QUICK_SIZE
         y0, x0 = (mpi.height - h) // 2, (mpi.width - w) // 2
@@ -190,7 +193,7 @@ def all_planes_mpi(height: int, width: int):
     on: what ``mpib refocus`` builds with ``planes="uniform"``); focus at the 35th
     percentile of the disparity, ``A`` so that the largest plane radius is about 60 px."""
     from mpib_validate.cards.textures import shipped_image
-    from mpib_validate.layers.passes import PassesSettings, layers_from_passes
+    from mpib_validate.runtime.layers.passes import PassesSettings, layers_from_passes
 
     colour = shipped_image("astronaut", height, width)
     D = smooth_disparity(height, width)
@@ -222,7 +225,7 @@ def _timing_row(name, built, renderer, pairs: int = 2) -> dict:
 def run(out: Path, quick: bool = True, torch_available: bool | None = None) -> dict:
     """Run the suite. ``torch_available=False`` behaves as if torch were not installed
     (the suite is skipped); ``None`` looks for it."""
-    from mpib_validate.compositor import official_torch as O
+    from mpib_validate.baselines import official_torch as O
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -6,7 +6,7 @@ tracer's exact disparity is degraded as an estimator errs
 (:func:`mpib_validate.cards.degrade.degrade_disparity`: blur, 4x down and bilinear up,
 smooth multiplicative noise, a 1.5 px shift; seeded by the scene's seed), and every
 preset refocuses colour + that disparity, without and with the edge-aware refinement
-(:mod:`mpib_validate.layers.refine`, ``PassesSettings(refine="guided")``, and for the
+(:mod:`mpib_validate.runtime.layers.refine`, ``PassesSettings(refine="guided")``, and for the
 default preset ``"guided-thin"``); Blender's
 Defocus node gets the same degraded depth. The exact-depth scores are the bound, and
 the refinement is also run on exact depth (it must not hurt there). The boundary mask
@@ -48,9 +48,9 @@ def disparity_to_depth(disparity: np.ndarray) -> np.ndarray:
 
 
 def _methods(scene, res, seed):
-    from mpib_validate.compositor.composite import render_subapertures
-    from mpib_validate.layers.passes import depth_to_disparity, layers_from_passes
-    from mpib_validate.presets import PRESETS
+    from mpib_validate.runtime.compositor.composite import render_subapertures
+    from mpib_validate.runtime.layers.passes import depth_to_disparity, layers_from_passes
+    from mpib_validate.runtime.presets import PRESETS
 
     cam = scene.camera
     A, df = cam.blur_parameter, cam.focus_disparity
@@ -79,7 +79,7 @@ def _methods(scene, res, seed):
     import importlib.util
 
     if importlib.util.find_spec("bpy") is not None:
-        from mpib_validate.compositor.defocus_node import defocus
+        from mpib_validate.baselines.defocus_node import defocus
 
         settings = cam.cycles_settings()
         methods["defocus-node exact"] = lambda: defocus(aif, res.depth, settings, timing=False)
@@ -108,7 +108,7 @@ def oracle_disparities(aif, exact, degraded, A) -> dict:
     suite on the cards and by ``mpib bench --suite blender`` on its scenes."""
     from scipy import ndimage
 
-    from mpib_validate.layers.refine import refine_disparity, uncertain_band
+    from mpib_validate.runtime.layers.refine import refine_disparity, uncertain_band
 
     refined = refine_disparity(aif, degraded, A)
     lights = ndimage.binary_dilation(np.asarray(aif)[..., :3].max(axis=-1) > 1.0,
@@ -128,7 +128,8 @@ def scene_rows(scene, label, family, seed, ref_spp, only=None) -> list[dict]:
     """One row per method: PSNR, PSNR_ob, SSIM, SSIM_ob against the ray tracer at
     ``ref_spp`` samples, and the method's time (CPU seconds of this process; the Defocus
     node's is Blender's whole render op, not comparable)."""
-    from mpib_validate.cards import samples, trace
+    from mpib_validate.runtime import samples
+    from mpib_validate.cards import trace
     from mpib_validate.cards.evaluate import card_scene_mask, score
 
     res = trace.render(scene, samples.stratified(ref_spp, seed=11), notices=False)
@@ -162,11 +163,12 @@ def refine_cost() -> dict:
     the rest of the default pipeline (layers + Eq. 1) on the refocus suite's 1080p scene
     with its degraded disparity."""
     from mpib_validate.bench.compositor import hd_scene
-    from mpib_validate.cards import samples, trace
-    from mpib_validate.compositor.composite import render_subapertures
-    from mpib_validate.layers.passes import depth_to_disparity, layers_from_passes
-    from mpib_validate.layers.refine import refine_disparity
-    from mpib_validate.presets import PRESETS
+    from mpib_validate.runtime import samples
+    from mpib_validate.cards import trace
+    from mpib_validate.runtime.compositor.composite import render_subapertures
+    from mpib_validate.runtime.layers.passes import depth_to_disparity, layers_from_passes
+    from mpib_validate.runtime.layers.refine import refine_disparity
+    from mpib_validate.runtime.presets import PRESETS
 
     scene = hd_scene()
     res = trace.render(scene, samples.pinhole(2), notices=False)
@@ -217,11 +219,11 @@ def photo_figure(path: Path, crop: int = 80) -> dict:
     Returns the settings and the crop centres."""
     from PIL import Image
 
-    from mpib_validate.compositor.composite import composite
-    from mpib_validate.io.atomic import atomic_path
-    from mpib_validate.io.preview import to_uint8
-    from mpib_validate.layers.passes import PassesSettings, layers_from_passes
-    from mpib_validate.presets import PRESETS
+    from mpib_validate.runtime.compositor.composite import composite
+    from mpib_validate.runtime.io.atomic import atomic_path
+    from mpib_validate.runtime.io.preview import to_uint8
+    from mpib_validate.runtime.layers.passes import PassesSettings, layers_from_passes
+    from mpib_validate.runtime.presets import PRESETS
     from scipy import ndimage
 
     rgb, D = load_motorcycle()

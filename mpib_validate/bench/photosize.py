@@ -89,9 +89,9 @@ def photo_passes(seed: int, width: int, height: int, span_px: float | None = Non
 def time_refocus(width: int, height: int, preset: str, seed: int = 0) -> dict:
     """One refocus of the generated input: CPU and wall seconds, planes, peak memory
     growth (max RSS of this process, which should be fresh, minus its RSS before)."""
-    from mpib_validate import refocus as R
+    from mpib_validate.runtime import refocus as R
     from mpib_validate.bench.machine import peak_rss_mb
-    from mpib_validate.budget import format_bytes, memory_limit, refocus_estimate
+    from mpib_validate.runtime.budget import format_bytes, memory_limit, refocus_estimate
 
     colour, depth, A, d_f = photo_passes(seed, width, height)
     passes = R.Passes(colour, depth, "generated", "generated", None, None)
@@ -129,7 +129,7 @@ def _worker(args):
 def run(out: Path, quick: bool = True) -> dict:
     """Time the presets on generated photographs, each in a fresh process (so that the
     peak memory is that row's); writes ``photosize.json`` and ``photosize.md``."""
-    from mpib_validate.io.atomic import write_text
+    from mpib_validate.runtime.io.atomic import write_text
     from mpib_validate.bench.machine import machine_info
 
     out.mkdir(parents=True, exist_ok=True)

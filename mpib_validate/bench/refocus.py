@@ -22,12 +22,13 @@ from mpib_validate.bench.machine import (finish, machine_info, mean_table, peak_
 
 
 def _methods(scene, res):
-    from mpib_validate.compositor import baselines
-    from mpib_validate.compositor import composite as C
-    from mpib_validate.layers import mpi as M
+    from mpib_validate.baselines import classical as baselines
+    from mpib_validate.runtime.compositor import composite as C
+    from mpib_validate.runtime.layers import mpi as M
+    from mpib_validate.cards import mpi as CM
     from mpib_validate.cards.evaluate import hidden_background
-    from mpib_validate.layers.passes import PassesSettings, depth_to_disparity, layers_from_passes
-    from mpib_validate.presets import PRESETS
+    from mpib_validate.runtime.layers.passes import PassesSettings, depth_to_disparity, layers_from_passes
+    from mpib_validate.runtime.presets import PRESETS
 
     cam = scene.camera
     A, df = cam.blur_parameter, cam.focus_disparity
@@ -58,12 +59,12 @@ def _methods(scene, res):
         "sterefo": lambda: baselines.sterefo(aif, D, A, df),
         "scatter": lambda: baselines.scatter(aif, D, A, df),
         "gather": lambda: baselines.gather(aif, D, A, df),
-        "exact-layers (reference)": lambda: C.composite(M.layers_from_cards(scene), A, df),
+        "exact-layers (reference)": lambda: C.composite(CM.layers_from_cards(scene), A, df),
     })
     import importlib.util
 
     if importlib.util.find_spec("bpy") is not None:
-        from mpib_validate.compositor.defocus_node import defocus
+        from mpib_validate.baselines.defocus_node import defocus
 
         # Blender's Defocus node on the same passes; returns its own time (the node alone)
         methods["blender-defocus-node"] = lambda: defocus(aif, res.depth, cam.cycles_settings())
@@ -71,7 +72,8 @@ def _methods(scene, res):
 
 
 def _scene_rows(scene, label, family, ref_spp, only=None):
-    from mpib_validate.cards import samples, trace
+    from mpib_validate.runtime import samples
+    from mpib_validate.cards import trace
     from mpib_validate.cards.evaluate import card_scene_mask, score
 
     res = trace.render(scene, samples.stratified(ref_spp, seed=11), notices=False)
@@ -98,7 +100,7 @@ def _scene_rows(scene, label, family, ref_spp, only=None):
 def _hd_worker(cfg) -> dict:
     """Time `mpib refocus` at 1920x1080 on an EXR written beforehand (in-process call of
     the same functions the command runs, EXR read and write included)."""
-    from mpib_validate.refocus import load_passes, refocus, write_result
+    from mpib_validate.runtime.refocus import load_passes, refocus, write_result
 
     t0 = time.perf_counter()
     passes = load_passes(cfg["input"])
@@ -112,8 +114,9 @@ def _hd_worker(cfg) -> dict:
 
 
 def _hd_input(path: Path) -> dict:
-    from mpib_validate.cards import samples, trace
-    from mpib_validate.io.render_io import write_render
+    from mpib_validate.runtime import samples
+    from mpib_validate.cards import trace
+    from mpib_validate.cards.render_io import write_render
     from mpib_validate.bench.compositor import hd_scene
 
     scene = hd_scene()
@@ -136,7 +139,7 @@ def _scene_task(item) -> list[dict]:
 def run(out: Path, quick: bool = True, executor=None) -> dict:
     from mpib_validate.executor import make_executor
     from mpib_validate.cards.generate import FAMILIES
-    from mpib_validate.presets import PRESETS
+    from mpib_validate.runtime.presets import PRESETS
 
     out.mkdir(parents=True, exist_ok=True)
     size = 192 if quick else 512

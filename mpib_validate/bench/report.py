@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mpib_validate.io.atomic import atomic_path, write_text
+from mpib_validate.runtime.io.atomic import atomic_path, write_text
 from mpib_validate.bench.machine import machine_info
 
 #: Methods drawn in the Pareto plots, with a legend group each.
@@ -131,14 +131,15 @@ def crop_grid(path: Path, size: int = 192, crop: int = 48) -> list[str]:
     colour + depth errs most, each method beside the reference. Returns the methods."""
     from PIL import Image
 
-    from mpib_validate.compositor import baselines
-    from mpib_validate.cards import samples, trace
-    from mpib_validate.compositor.composite import composite
+    from mpib_validate.baselines import classical as baselines
+    from mpib_validate.runtime import samples
+    from mpib_validate.cards import trace
+    from mpib_validate.runtime.compositor.composite import composite
     from mpib_validate.cards.evaluate import card_scene_mask
     from mpib_validate.cards.generate import FAMILIES, GeneratorSettings, generate
-    from mpib_validate.layers.mpi import layers_from_cards
-    from mpib_validate.layers.passes import PassesSettings, depth_to_disparity, layers_from_passes
-    from mpib_validate.io.preview import to_uint8
+    from mpib_validate.cards.mpi import layers_from_cards
+    from mpib_validate.runtime.layers.passes import PassesSettings, depth_to_disparity, layers_from_passes
+    from mpib_validate.runtime.io.preview import to_uint8
 
     rows, names = [], None
     for family in FAMILIES:
@@ -155,7 +156,7 @@ def crop_grid(path: Path, size: int = 192, crop: int = 48) -> list[str]:
                 "scatter": baselines.scatter(aif, D, A, df),
                 "all in focus (input)": aif}
         try:
-            from mpib_validate.compositor.defocus_node import defocus
+            from mpib_validate.baselines.defocus_node import defocus
 
             imgs["Blender Defocus node"] = defocus(aif, res.depth, cam.cycles_settings(), timing=False)[0]
         except ImportError:
@@ -191,10 +192,10 @@ def photo_figure(path: Path) -> dict:
     from PIL import Image
 
     from mpib_validate.bench.photos import load_motorcycle
-    from mpib_validate.compositor import baselines
-    from mpib_validate.compositor.composite import composite
-    from mpib_validate.layers.passes import layers_from_passes
-    from mpib_validate.io.preview import to_uint8
+    from mpib_validate.baselines import classical as baselines
+    from mpib_validate.runtime.compositor.composite import composite
+    from mpib_validate.runtime.layers.passes import layers_from_passes
+    from mpib_validate.runtime.io.preview import to_uint8
 
     rgb, D = load_motorcycle()
     A = 0.02 * rgb.shape[1]

@@ -12,7 +12,7 @@ import statistics
 import time
 from pathlib import Path
 
-from mpib_validate.io.atomic import write_text
+from mpib_validate.runtime.io.atomic import write_text
 from mpib_validate.bench.machine import machine_info
 
 
@@ -36,8 +36,9 @@ def _scene(size: int, radius: float):
 
 
 def run(out: Path, quick: bool = True) -> dict:
-    from mpib_validate.compositor import composite as C
-    from mpib_validate.layers import mpi as M
+    from mpib_validate.runtime.compositor import composite as C
+    from mpib_validate.runtime.layers import mpi as M
+    from mpib_validate.cards import mpi as CM
 
     out.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -45,7 +46,7 @@ def run(out: Path, quick: bool = True) -> dict:
     def measure(axis, value, size, radius, planes):
         scene = _scene(size, radius)
         cam = scene.camera
-        mpi = M.layers_from_cards(scene, planes=M.uniform_planes(planes, max(1.0, scene.disparity_range()[1])))
+        mpi = CM.layers_from_cards(scene, planes=M.uniform_planes(planes, max(1.0, scene.disparity_range()[1])))
         t = _time(lambda: C.composite(mpi, cam.blur_parameter, cam.focus_disparity))
         rows.append({"axis": axis, "value": value, "size": size, "radius": radius,
                      "planes": planes, "nonempty_planes": len(mpi.layers), "seconds": t})
@@ -78,7 +79,7 @@ def plot(rows, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from mpib_validate.io.atomic import atomic_path
+    from mpib_validate.runtime.io.atomic import atomic_path
 
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.4))
     for ax, axis, label in zip(axes, ("resolution", "radius", "planes"),

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mpib_validate.io.atomic import write_text
+from mpib_validate.runtime.io.atomic import write_text
 from mpib_validate.bench.machine import machine_info, peak_rss_mb, run_worker, worker_main
 
 TARGET_SPEEDUP = 20.0
@@ -26,7 +26,8 @@ TARGET_PEAK_MB = 2048.0
 
 
 def _worker(cfg: dict) -> dict:
-    from mpib_validate.cards import samples, trace
+    from mpib_validate.runtime import samples
+    from mpib_validate.cards import trace
     from mpib_validate.cards.generate import official_example
 
     scene = official_example(cfg["size"])
@@ -53,7 +54,7 @@ def _run_worker(cfg: dict) -> dict:
 
 
 def run(out: Path, quick: bool = True) -> dict:
-    from mpib_validate.compositor import backend
+    from mpib_validate.runtime.compositor import backend
 
     out.mkdir(parents=True, exist_ok=True)
     jit = [b for b in ("llvm", "cuda") if backend.resolve(b).name == b]

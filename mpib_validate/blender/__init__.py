@@ -1,2 +1,2 @@
-"""Blender at the edge: version adapters, Cycles renders of card and 3D scenes, view layers per
-depth group, and the compositor node-group builder. Only these modules import ``bpy``."""
+"""The harness's Blender: Cycles renders of card and 3D scenes (the references with
+Cycles' own depth of field) and the Blender scene suite."""

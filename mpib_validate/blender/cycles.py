@@ -62,7 +62,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mpib_validate.blender.compat import set_multilayer_exr, set_sample_subset
+from mpib_validate.runtime.blender.compat import set_multilayer_exr, set_sample_subset
 from mpib_validate.cards.scene import Scene
 
 #: Depth Cycles writes where no surface is solid (scene units).
@@ -423,7 +423,7 @@ def render_exr(bl, path: str | os.PathLike) -> float:
 def read_render(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
     """Read a Cycles multilayer EXR: ``(rgba (H, W, 4) float32 from ViewLayer.Combined,
     depth (H, W) float32 from the Depth pass or None)``."""
-    from mpib_validate.io.exr import ExrError, find_pass, read_exr, rgba_from
+    from mpib_validate.runtime.io.exr import ExrError, find_pass, read_exr, rgba_from
 
     img = read_exr(path)
     rgba = rgba_from(img, "ViewLayer.Combined.").astype(np.float32)
@@ -597,7 +597,7 @@ def dot_grid_scene(width: int = 96, per_side: int = 6, radius: float = 6.0,
     Returns ``(scene, centres, step)``: the (row, column) of each dot's texel (= its
     in-focus pixel) and the grid step in pixels (each dot owns a ``step`` x ``step``
     window; ``step > 2 radius + 3``)."""
-    from mpib_validate.camera import Camera
+    from mpib_validate.runtime.camera import Camera
     from mpib_validate.cards.scene import Card, Plane
 
     step = width // per_side

@@ -1,7 +1,7 @@
 """Layered renders of the Blender scene suite (:mod:`mpib_validate.blender.scenes`).
 
 For each scene (the sharp passes do not depend on the focus, so one render serves both
-foci) the depth groups of :mod:`mpib_validate.blender.layers` are chosen automatically
+foci) the depth groups of :mod:`mpib_validate.runtime.blender.layers` are chosen automatically
 (bounding boxes, refined by the suite's own sharp Z pass: the "last render"), one view
 layer per group, and rendered as the suite's sharp passes are:
 
@@ -13,7 +13,7 @@ layer per group, and rendered as the suite's sharp passes are:
 
 ``layers.exr``: ``mpib_group_<k>.Combined.R/G/B/A``, ``mpib_group_<k>.Depth.Z`` (and the
 farthest group's ``Environment`` pass), with the suite's camera header, so that
-:func:`mpib_validate.refocus.load_layered_passes` and ``mpib refocus`` read it.
+:func:`mpib_validate.runtime.refocus.load_layered_passes` and ``mpib refocus`` read it.
 
 Render cost: the layered colour render against the single-pass colour render of the
 same scene and samples, timed in the same run as single, layered, single (A, B, A: the
@@ -67,7 +67,7 @@ def folder_name(spec, sharp_spp: int) -> str:
 def _build_layered(spec, spp, depth_pass, unbiased, depth, threads):
     """The suite scene with its group layers (the artist's layer off); ``(bl, names,
     report)``. The artist's layer keeps rendering when there is one group only."""
-    from mpib_validate.blender import layers
+    from mpib_validate.runtime.blender import layers
     from mpib_validate.blender.scenes import build
 
     bl = build(spec, spp, 0, dof=False, depth_pass=depth_pass, unbiased=unbiased,
@@ -93,7 +93,7 @@ def render_layered(spec, sharp_spp: int, depth, threads: int = 0) -> dict:
     single-pass colour render's times around it: ``{"channels", "names", "report",
     "seconds"}``. ``depth``: the single pass's Z (refines the grouping)."""
     from mpib_validate.blender.scenes import build
-    from mpib_validate.io.exr import read_exr
+    from mpib_validate.runtime.io.exr import read_exr
 
     with tempfile.TemporaryDirectory(prefix="mpib-layered-") as tmp:
         tmp = Path(tmp)
@@ -137,8 +137,8 @@ def render_layered_suite(out_dir, specs, sharp_spp: int, suite_folders, threads:
     :func:`~mpib_validate.blender.scenes.render_suite`, whose sharp Z pass refines the
     grouping. A scene with one group has no ``layers.exr`` (``meta.json`` says so)."""
     from mpib_validate.blender.scenes import passes_header
-    from mpib_validate.io.atomic import write_text
-    from mpib_validate.io.exr import read_exr, write_exr
+    from mpib_validate.runtime.io.atomic import write_text
+    from mpib_validate.runtime.io.exr import read_exr, write_exr
 
     out_dir = Path(out_dir)
     found = {}

@@ -401,8 +401,8 @@ def lens(spec: SceneSpec) -> dict:
 
 
 def camera(spec: SceneSpec):
-    """The :class:`~mpib_validate.camera.Camera` of ``spec``."""
-    from mpib_validate.camera import Camera
+    """The :class:`~mpib_validate.runtime.camera.Camera` of ``spec``."""
+    from mpib_validate.runtime.camera import Camera
 
     c = lens(spec)
     return Camera(spec.width, spec.height, c["blur_parameter"], c["focus_disparity"],
@@ -770,7 +770,7 @@ def noise_figures(a: np.ndarray, b: np.ndarray) -> dict:
 def passes_header(spec: SceneSpec) -> dict:
     """The ``mpib`` header attribute of ``passes.exr``: ``{"camera": ...}`` with the
     image-space camera (``Camera.to_dict()``) and the Blender lens settings under
-    ``blender`` (the schema of :mod:`mpib_validate.io.camera_header`), so ``mpib refocus
+    ``blender`` (the schema of :mod:`mpib_validate.runtime.io.camera_header`), so ``mpib refocus
     passes.exr`` needs no lens options."""
     c = lens(spec)
     blender = {k: c[k] for k in ("lens_mm", "sensor_width_mm", "sensor_fit", "fstop",
@@ -781,7 +781,7 @@ def passes_header(spec: SceneSpec) -> dict:
 
 
 def write_passes(path, rgba, depth, spec) -> None:
-    from mpib_validate.io.exr import channels_from_rgba, write_exr
+    from mpib_validate.runtime.io.exr import channels_from_rgba, write_exr
 
     ch = channels_from_rgba(np.asarray(rgba, np.float32), "ViewLayer.Combined.")
     ch["ViewLayer.Depth.Z"] = np.asarray(depth, np.float32)
@@ -789,7 +789,7 @@ def write_passes(path, rgba, depth, spec) -> None:
 
 
 def write_truth(path, renders, spec, meta) -> None:
-    from mpib_validate.io.exr import channels_from_rgba, write_exr
+    from mpib_validate.runtime.io.exr import channels_from_rgba, write_exr
 
     r = np.asarray(renders, np.float64)
     mean = r.mean(axis=0).astype(np.float32)
@@ -819,7 +819,7 @@ class SuiteScene:
 
 def load_scene(folder) -> SuiteScene:
     """Read a folder written by :func:`render_suite`."""
-    from mpib_validate.io.exr import read_exr, rgba_from
+    from mpib_validate.runtime.io.exr import read_exr, rgba_from
 
     folder = Path(folder)
     meta = json.loads((folder / "meta.json").read_text())
@@ -858,7 +858,7 @@ def render_suite(out_dir, specs, spp: int, sharp_spp: int | None = None, threads
     on the focus: the two focus variants of a scene
     (same everything but ``focus``) share one sharp render. ``sharp_spp``: samples of
     the sharp Combined pass (default ``spp``). Returns the folders in ``specs`` order."""
-    from mpib_validate.io.atomic import write_text
+    from mpib_validate.runtime.io.atomic import write_text
 
     out_dir = Path(out_dir)
     sharp_spp = int(sharp_spp or spp)

@@ -104,10 +104,11 @@ def _publish(tmp: Path, final: Path) -> bool:
 
 def make_sample(item: tuple) -> dict:
     """Build one sample: ``item = (out, seed, family, width, height, spp)``."""
-    from mpib_validate.cards import samples, trace
-    from mpib_validate.io.atomic import write_text
+    from mpib_validate.runtime import samples
+    from mpib_validate.cards import trace
+    from mpib_validate.runtime.io.atomic import write_text
     from mpib_validate.cards.generate import GeneratorSettings, generate
-    from mpib_validate.io.render_io import write_render
+    from mpib_validate.cards.render_io import write_render
     from mpib_validate.cards.scene import save_scene
 
     out, seed, family, width, height, spp = item
@@ -140,7 +141,7 @@ def build_dataset(out, count: int, family: str = "mixed", size=(256, 256), spp: 
 
     ``progress(result)``, if given, is called as each sample is done (built or skipped).
     """
-    from mpib_validate.io.atomic import write_text
+    from mpib_validate.runtime.io.atomic import write_text
     from mpib_validate.executor import make_executor
 
     if family not in FAMILIES:

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mpib_validate.cards import textures as tx
-from mpib_validate.camera import Camera
+from mpib_validate.runtime.camera import Camera
 from mpib_validate.cards.scene import Card, Plane, Scene, SceneError
 
 FAMILIES = ("constant", "varying")

@@ -26,8 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mpib_validate.io.atomic import write_text
-from mpib_validate.camera import Camera
+from mpib_validate.runtime.io.atomic import write_text
+from mpib_validate.runtime.camera import Camera
 
 FORMAT_NAME = "mpib-scene"
 FORMAT_VERSION = 1
@@ -288,7 +288,7 @@ def save_scene(scene: Scene, directory: str | os.PathLike, *, half: bool = False
     Every file is written atomically; ``scene.json`` is written last, so a directory
     with a ``scene.json`` is complete. Output is byte-for-byte deterministic.
     """
-    from mpib_validate.io.exr import channels_from_rgba, write_exr
+    from mpib_validate.runtime.io.exr import channels_from_rgba, write_exr
 
     scene.validate(str(directory))
     directory = Path(directory)
@@ -373,7 +373,7 @@ def load_scene(path: str | os.PathLike) -> Scene:
     missing or unreadable files, NaN, ``c <= 0``, non-positive depth inside a card,
     a texture whose size disagrees with the declared ``size``, and so on.
     """
-    from mpib_validate.io.exr import ExrError, read_exr, rgba_from
+    from mpib_validate.runtime.io.exr import ExrError, read_exr, rgba_from
 
     path = Path(path)
     json_path = path / "scene.json" if path.is_dir() else path

@@ -36,7 +36,7 @@ from skimage import data as skdata
 from skimage import measure
 from skimage.transform import resize
 
-from mpib_validate.io.photo import srgb_to_linear  # the exact sRGB EOTF, one definition
+from mpib_validate.runtime.io.colour import srgb_to_linear  # the exact sRGB EOTF, one definition
 
 __all__ = [
     "SHIPPED_IMAGES",

@@ -17,7 +17,7 @@ A pixel is the average of ``C`` over its samples (linear radiance; nothing behin
 last card, i.e. black), and its alpha is the average coverage ``1 - T``.
 
 The canonical pixel model (``shared/REFERENCE.md``) is the default: nearest-texel
-lookups and samples spread over the pixel area (see :mod:`mpib_validate.cards.samples`).
+lookups and samples spread over the pixel area (see :mod:`mpib_validate.runtime.samples`).
 The official generator's bilinear lookups at the pixel centre and its fixed
 object order are options, for comparison only: the fixed order is wrong wherever
 cards interleave in depth.
@@ -38,8 +38,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mpib_validate.compositor import backend as _backend
-from mpib_validate.cards import samples as _samples
+from mpib_validate.runtime.compositor import backend as _backend
+from mpib_validate.runtime import samples as _samples
 from mpib_validate.cards.scene import Scene
 
 LOOKUPS = ("nearest", "bilinear")

@@ -65,8 +65,8 @@ out["probe"] = bpy.app.version_string
 
 
 def read_rgb(path):
-    from mpib_validate.io.exr import read_exr, rgba_from
-    from mpib_validate.refocus import _colour_prefix
+    from mpib_validate.runtime.io.exr import read_exr, rgba_from
+    from mpib_validate.runtime.refocus import _colour_prefix
 
     img = read_exr(path)
     return rgba_from(img, _colour_prefix(img))[..., :3]
@@ -119,7 +119,7 @@ sc = cycles_scene(dof=False, spp=16)
 bpy.ops.render.render(write_still=False)  # the add-on's handler keeps the passes
 out["kept_passes"] = bool(sc.mpib.last_passes and os.path.exists(sc.mpib.last_passes))
 sharp = read_rgb(sc.mpib.last_passes)
-from mpib_validate.io.exr import find_pass, read_exr  # noqa: E402
+from mpib_validate.runtime.io.exr import find_pass, read_exr  # noqa: E402
 
 _passes = read_exr(sc.mpib.last_passes)
 np.save(os.path.join(work, "depth.npy"), _passes.channels[find_pass(_passes, "Depth")])
@@ -168,8 +168,8 @@ def shown():
 def fresh_refocus(sc, pixel=None):
     """What a plain refocus of the kept passes gives at the panel's settings (or at a
     focus pixel): no session, no cache."""
-    from mpib_validate.camera import blender_camera
-    from mpib_validate.refocus import focus_from_pixel, load_passes, refocus
+    from mpib_validate.runtime.camera import blender_camera
+    from mpib_validate.runtime.refocus import focus_from_pixel, load_passes, refocus
 
     request = ops_mod.prepare(sc, sc.mpib.last_passes, "fresh", save=None)
     cam = blender_camera(**request["camera"])
@@ -209,7 +209,7 @@ out["focus_pull"] = pulls
 sc.mpib.use_camera_focus = True
 
 # -- layered render: tick it, render, refocus; untick removes only the group layers --------
-from mpib_validate.refocus import view_layers  # noqa: E402
+from mpib_validate.runtime.refocus import view_layers  # noqa: E402
 
 
 def pixels_of(name):
@@ -298,7 +298,7 @@ for f in (1, 2):
     sib = os.path.join(os.path.dirname(src), os.path.splitext(os.path.basename(src))[0] + "_refocused.exr")
     anim[f] = {"written": os.path.exists(src), "refocused": os.path.exists(sib)}
     if os.path.exists(sib):
-        from mpib_validate.io.exr import read_exr as _r
+        from mpib_validate.runtime.io.exr import read_exr as _r
 
         anim[f]["focus_disparity"] = json.loads(_r(sib).header["mpib"])["focus_disparity"]
 out["animation"] = anim
@@ -322,7 +322,7 @@ def refocus_bad_render(case, **scene):
 
 refocus_bad_render("no_depth_pass", depth_pass=False)
 refocus_bad_render("depth_all_infinite", empty=True)
-from mpib_validate.io.exr import channels_from_rgba, write_exr  # noqa: E402
+from mpib_validate.runtime.io.exr import channels_from_rgba, write_exr  # noqa: E402
 
 nan_path = os.path.join(work, "nan.exr")
 depth = np.full((8, 8), 5.0, np.float32)

@@ -20,8 +20,8 @@ import blender_addon  # noqa: E402  (this checkout, on PYTHONPATH)
 
 blender_addon.register()
 
-from mpib_validate.io.camera_header import read_camera  # noqa: E402
-from mpib_validate.io.exr import read_exr  # noqa: E402
+from mpib_validate.runtime.io.camera_header import read_camera  # noqa: E402
+from mpib_validate.runtime.io.exr import read_exr  # noqa: E402
 from scene_parts import emitter  # noqa: E402  (this folder: the script's own)
 
 

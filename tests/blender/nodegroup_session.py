@@ -144,7 +144,7 @@ if command == "render":
               blur=args.get("blur", "AUTO"))
     out["operator"] = sorted(bpy.ops.mpib.add_refocus_node(**op))
     out["message"] = sc.mpib.last_message
-    from mpib_validate.blender import nodegroup as ng
+    from mpib_validate.runtime.blender import nodegroup as ng
 
     tree = ng.compositor_tree(sc, create=False)
     node = tree.nodes[ng.GROUP_NAME]
@@ -206,7 +206,7 @@ elif command == "drivers":
     blender_addon.register()
     out["operator"] = sorted(bpy.ops.mpib.add_refocus_node())
     out["message"] = sc.mpib.last_message
-    from mpib_validate.blender import nodegroup as ng
+    from mpib_validate.runtime.blender import nodegroup as ng
 
     node = ng.compositor_tree(sc, create=False).nodes[ng.GROUP_NAME]
     sc.frame_set(1)

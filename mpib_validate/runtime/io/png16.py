@@ -1,6 +1,6 @@
 """16-bit PNG in and out, which Pillow cannot do for colour (it reads 16-bit RGB as 8 bit
 and writes 16 bit only for grey): the chunks, zlib and the five PNG filters (PNG spec,
-sections 5, 9 and 11), in numpy. Used by :mod:`mpib_validate.io.photo`."""
+sections 5, 9 and 11), in numpy. Used by :mod:`mpib_validate.runtime.io.photo`."""
 
 from __future__ import annotations
 

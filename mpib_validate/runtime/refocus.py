@@ -3,16 +3,16 @@
 This is what ``mpib refocus`` and the Blender add-on run. Inputs are EXR files: a
 Blender multilayer file (``ViewLayer.Combined.*`` and ``ViewLayer.Depth.Z``), one of
 this project's renders (``AllInFocus.*`` and ``Depth.Z``), or colour and depth as two
-files. The camera travels in the header (:mod:`mpib_validate.io.camera_header`).
+files. The camera travels in the header (:mod:`mpib_validate.runtime.io.camera_header`).
 
 A photograph with a disparity map (``mpib refocus photo.jpg --disparity disp.png``, read
-by :mod:`mpib_validate.io.photo`) comes in as :class:`Passes` whose ``disparity`` is
+by :mod:`mpib_validate.runtime.io.photo`) comes in as :class:`Passes` whose ``disparity`` is
 given directly instead of ``1/depth``; the rest is the same.
 
 A layered render (one view layer per depth group, ``mpib_group_<k>.Combined.*`` and
-``mpib_group_<k>.Depth.Z``, see :mod:`mpib_validate.blender.layers`) is read by
+``mpib_group_<k>.Depth.Z``, see :mod:`mpib_validate.runtime.blender.layers`) is read by
 :func:`load_layered_passes` and refocused from its group layers
-(:mod:`mpib_validate.layers.layered`): what nearer groups hide is rendered, not filled.
+(:mod:`mpib_validate.runtime.layers.layered`): what nearer groups hide is rendered, not filled.
 """
 
 from __future__ import annotations
@@ -27,12 +27,12 @@ from pathlib import Path
 
 import numpy as np
 
-from mpib_validate.io.camera_header import HeaderCamera, read_camera
-from mpib_validate.compositor.composite import render_subapertures
-from mpib_validate.io.exr import ExrError, find_pass, read_exr, rgba_from
-from mpib_validate.layers.layered import composite_over, group_disparity, layers_from_layered_passes
-from mpib_validate.layers.passes import DEFAULT_FAR_LIMIT, PassError, depth_to_disparity, layers_from_passes
-from mpib_validate.presets import get_preset
+from mpib_validate.runtime.io.camera_header import HeaderCamera, read_camera
+from mpib_validate.runtime.compositor.composite import render_subapertures
+from mpib_validate.runtime.io.exr import ExrError, find_pass, read_exr, rgba_from
+from mpib_validate.runtime.layers.layered import composite_over, group_disparity, layers_from_layered_passes
+from mpib_validate.runtime.layers.passes import DEFAULT_FAR_LIMIT, PassError, depth_to_disparity, layers_from_passes
+from mpib_validate.runtime.presets import get_preset
 
 
 @dataclass
@@ -66,7 +66,7 @@ class Passes:
 #: ``texel`` (the card scenes' nearest-texel textures, each pixel a constant patch: the
 #: canonical kernel, exact against the ray tracer) and ``continuous`` (continuous
 #: geometry filtered by the pixel, or a photograph: the canonical kernel at
-#: :func:`~mpib_validate.compositor.kernels.continuous_radius`, which has the disk's
+#: :func:`~mpib_validate.runtime.compositor.kernels.continuous_radius`, which has the disk's
 #: own second moment). Measured: the continuous kernel on card scenes loses 3.5 dB
 #: PSNR_ob (constant family), the canonical one on the Blender suite makes small
 #: bokeh 3-4 % too wide at 3.4 px.
@@ -89,7 +89,7 @@ def pixel_model_of(header: dict) -> str:
 
 def passes_disparity(passes: Passes, far_limit: float = DEFAULT_FAR_LIMIT) -> np.ndarray:
     """The disparity of the passes: the one given (:attr:`Passes.disparity`), else
-    :func:`~mpib_validate.layers.passes.depth_to_disparity` of the depth."""
+    :func:`~mpib_validate.runtime.layers.passes.depth_to_disparity` of the depth."""
     if passes.disparity is not None:
         return np.asarray(passes.disparity, np.float64)
     return depth_to_disparity(passes.depth, far_limit, source=passes.depth_source)
@@ -177,9 +177,9 @@ def _clamp_negative(colour: np.ndarray, source: str) -> str | None:
 
 def load_passes(path, depth_path=None, view_layer: str | None = None) -> Passes:
     """Read colour and depth, and the camera of the colour file's header (see
-    :mod:`mpib_validate.io.camera_header`). Raises :class:`PassError`/:class:`ExrError`
+    :mod:`mpib_validate.runtime.io.camera_header`). Raises :class:`PassError`/:class:`ExrError`
     naming the file for a missing depth pass, mismatched sizes or NaN/infinite colour,
-    and :class:`~mpib_validate.io.camera_header.CameraHeaderError` for a malformed camera;
+    and :class:`~mpib_validate.runtime.io.camera_header.CameraHeaderError` for a malformed camera;
     negative colour is clamped to 0 with a notice in ``Passes.notices``. ``view_layer``
     picks one of several Blender view layers in the file."""
     img = read_exr(path)
@@ -215,7 +215,7 @@ def load_passes(path, depth_path=None, view_layer: str | None = None) -> Passes:
 
 
 def passes_from_photo(photo, disparity: np.ndarray, disparity_source: str) -> Passes:
-    """The :class:`Passes` of a photograph (:class:`mpib_validate.io.photo.Photo`: straight
+    """The :class:`Passes` of a photograph (:class:`mpib_validate.runtime.io.photo.Photo`: straight
     linear colour, alpha or None) and its ``(H, W)`` disparity (0 = infinitely far; a
     normalised map as it is, the paper's convention): colour premultiplied by the
     alpha as passes hold it, ``depth = 1/disparity`` (inf at 0) for display, and the
@@ -234,7 +234,7 @@ def passes_from_photo(photo, disparity: np.ndarray, disparity_source: str) -> Pa
 
 
 #: View layers named like this (``mpib_group_0`` farthest, see
-#: :mod:`mpib_validate.blender.layers`) are read as a layered input automatically.
+#: :mod:`mpib_validate.runtime.blender.layers`) are read as a layered input automatically.
 GROUP_LAYER = re.compile(r"^mpib_group_(\d+)$")
 
 
@@ -251,7 +251,7 @@ def load_layered_passes(path, layered: bool | None = None,
     ``layered=None`` (automatic): the view layers named ``mpib_group_<k>``, if there
     are two or more; ``True``: every view layer with Combined and Depth (an error
     naming the file if fewer than two); ``False``: None. The groups are ordered far to
-    near: ``mpib_group_<k>`` by ``k`` (:mod:`mpib_validate.blender.layers` numbers them
+    near: ``mpib_group_<k>`` by ``k`` (:mod:`mpib_validate.runtime.blender.layers` numbers them
     far to near and puts an object spanning the depth range, a ground plane, into group
     0 with the world, although its median depth may be nearer than the next group's);
     other view layers by their median depth (over pixels with alpha > 1/2 and a finite
@@ -372,7 +372,7 @@ def build_mpi(passes: Passes, blur_parameter: float, preset: str = "default",
 
     ``refine``: ``"guided"`` (or ``"guided-thin"``) for a predicted (monocular)
     disparity, whose edges are then moved onto the colour edges
-    (:mod:`mpib_validate.layers.refine`); None or ``"off"`` (the preset's setting, off in
+    (:mod:`mpib_validate.runtime.layers.refine`); None or ``"off"`` (the preset's setting, off in
     every preset) for a renderer's exact depth."""
     _check_camera(blur_parameter, 0.0)
     p = get_preset(preset)
@@ -454,7 +454,7 @@ def refocus(passes: Passes, blur_parameter: float, focus_disparity: float,
             progress=None, background=None, refine: str | None = None) -> RefocusResult:
     """Build the MPI from the passes (:func:`build_mpi`) and render it with the preset's
     settings (:func:`render_built`). To refocus one picture many times, keep the MPI:
-    :class:`mpib_validate.session.RefocusSession`.
+    :class:`mpib_validate.runtime.session.RefocusSession`.
 
     ``refine``: the disparity refinement for a predicted disparity (see
     :func:`build_mpi`); None keeps the preset's (off).
@@ -489,8 +489,8 @@ def focus_from_pixel(passes: Passes, x: int, y: int, far_limit: float = DEFAULT_
 
 def write_result(path, result: RefocusResult, preview: bool = True) -> list[Path]:
     """EXR (premultiplied RGBA, linear; the settings in the ``mpib`` attribute) and PNG."""
-    from mpib_validate.io.exr import channels_from_rgba, write_exr
-    from mpib_validate.io.preview import write_png
+    from mpib_validate.runtime.io.exr import channels_from_rgba, write_exr
+    from mpib_validate.runtime.io.preview import write_png
 
     path = Path(path)
     img = result.image.copy()

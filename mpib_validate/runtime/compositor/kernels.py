@@ -37,7 +37,7 @@ import threading
 
 import numpy as np
 
-from mpib_validate.cards.samples import concentric_disk
+from mpib_validate.runtime.samples import concentric_disk
 
 #: Precision of the FFT path: float32, the layers' and the output's own precision, at
 #: about half the time and memory of float64. Its rounding error grows like
@@ -252,7 +252,7 @@ def _inside_disk(R: int, r: float) -> np.ndarray:
 
 
 def _concentric_inverse(x: np.ndarray, y: np.ndarray):
-    """Inverse of :func:`mpib_validate.cards.samples.concentric_disk`: unit-disk points to the
+    """Inverse of :func:`mpib_validate.runtime.samples.concentric_disk`: unit-disk points to the
     unit square (extended beyond the disk by the same formulas)."""
     s = np.hypot(x, y)
     th = np.arctan2(y, x)

@@ -15,13 +15,13 @@ The graph (slices ``i = 0..N-1`` far to near at disparities ``d_i``, fixed when 
 group is generated; everything else is computed inside the graph, so drivers may
 animate focus and aperture):
 
-1. Blur parameter from the lens, as :func:`mpib_validate.camera.blender_camera`:
+1. Blur parameter from the lens, as :func:`mpib_validate.runtime.camera.blender_camera`:
    ``R = f_mm 1e-3 / (unit 2 N)`` (scene units), ``f_px = f_mm / sensor * W``,
    ``A = R f_px``; focus ``d_f = 1 / z_f``; slice radius ``r_i = A |d_i - d_f|`` px.
    "Sensor Width" is the sensor size across the image width for the camera's fit (the
    drivers of :mod:`blender_addon.nodegroup_ops` compute it for AUTO and VERTICAL fits).
 2. Per pixel ``d = 1/Z`` from the Depth pass and the additive split between
-   neighbouring slices of :func:`mpib_validate.layers.mpi.split_between_planes`
+   neighbouring slices of :func:`mpib_validate.runtime.layers.mpi.split_between_planes`
    (``additive=True``, as the numpy default preset): with ``u = clamp((d - d_i) /
    (d_{i+1} - d_i))`` the near slice gets ``u alpha`` and the far slice ``(1 - u)
    alpha``; the two shares add up to the pixel (and Eq. 16 gives its disparity). The
@@ -64,7 +64,7 @@ animate focus and aperture):
    alpha 1; the second output "Alpha" is ``acc_a``, the coverage of Eq. 1.
 
 Slices are placed from the depth of the last render (:func:`place_slices`): the
-adaptive planes of :func:`mpib_validate.layers.mpi.adaptive_planes` (only where content is,
+adaptive planes of :func:`mpib_validate.runtime.layers.mpi.adaptive_planes` (only where content is,
 spaced for a blur-radius quantisation error of ``tolerance_px``), with the tolerance
 raised until at most ``max_slices`` remain.
 
@@ -90,9 +90,9 @@ GROUP_NAME = "MPIB Refocus"
 
 # --------------------------------------------------------------------------------------
 # Version-dependent helpers: the compositor tree and its output come from the shared
-# module (mpib_validate.blender.compat: 5.3's compositor effects, 5.0's node group, 4.x's
+# module (mpib_validate.runtime.blender.compat: 5.3's compositor effects, 5.0's node group, 4.x's
 # scene.node_tree); the node idnames this graph needs are here.
-from mpib_validate.blender.compat import compositor_tree, tree_output  # noqa: E402,F401
+from mpib_validate.runtime.blender.compat import compositor_tree, tree_output  # noqa: E402,F401
 
 
 def is_legacy_api(bpy) -> bool:
@@ -215,7 +215,7 @@ def slabs_for(disparities, blur_parameter: float, slab_px: float = SLAB_PX) -> t
     content on the nearest slice: consecutive ones form one slab while its disparity
     span stays within ``slab_px / A`` (a
     blur-radius span of ``slab_px`` pixels at any focus; as
-    :func:`mpib_validate.layers.mpi._slab_of_groups`). ``slab_px = 0``: every interval
+    :func:`mpib_validate.runtime.layers.mpi._slab_of_groups`). ``slab_px = 0``: every interval
     alone."""
     d = np.asarray(disparities, np.float64)
     out, s, start = [], -1, 0.0
@@ -236,14 +236,14 @@ def slices_for_intervals(intervals, blur_parameter: float, tolerance_px: float =
 
     ``intervals``: ``[(lo, hi), ...]``, or a function of the plane step (disparity) that
     returns them (content split where a gap exceeds the step, so that gaps close as the
-    tolerance grows). The planes are :func:`mpib_validate.layers.mpi.adaptive_planes` (only where
+    tolerance grows). The planes are :func:`mpib_validate.runtime.layers.mpi.adaptive_planes` (only where
     content is, spaced for a blur-radius quantisation error of at most the tolerance);
     the tolerance is doubled, then refined by bisection to 0.1 %, until at most
     ``max_slices`` remain. If no tolerance gets there (more separate pieces of content
     than slices), the slices are spread evenly over the whole disparity range. Returns
     ``(disparities, tolerance_px_used)``.
     """
-    from mpib_validate.layers.mpi import adaptive_planes, plane_spacing
+    from mpib_validate.runtime.layers.mpi import adaptive_planes, plane_spacing
 
     if max_slices < 1:
         raise ValueError(f"max_slices must be >= 1, got {max_slices}")
@@ -281,7 +281,7 @@ def place_slices(depth: np.ndarray, blur_parameter: float, tolerance_px: float =
     """Slice disparities (far to near) for the depth present in a render: the content
     intervals of its disparity ``1/Z`` (gaps wider than one plane step split them; depth
     at or beyond ``far_limit`` is at infinity) through :func:`slices_for_intervals`."""
-    from mpib_validate.layers.passes import DEFAULT_FAR_LIMIT, _content_intervals, depth_to_disparity
+    from mpib_validate.runtime.layers.passes import DEFAULT_FAR_LIMIT, _content_intervals, depth_to_disparity
 
     D = depth_to_disparity(depth, DEFAULT_FAR_LIMIT if far_limit is None else far_limit)
     values = np.unique(np.round(D, 12))
@@ -1295,7 +1295,7 @@ def _write_passes(folder, image: np.ndarray, depth: np.ndarray) -> tuple[str, st
     """Two EXR files an Image node reads exactly: the RGBA image, and the depth in R, G, B."""
     import os
 
-    from mpib_validate.io.exr import channels_from_rgba, write_exr
+    from mpib_validate.runtime.io.exr import channels_from_rgba, write_exr
 
     d = np.asarray(depth, np.float32)
     paths = (os.path.join(folder, "image.exr"), os.path.join(folder, "depth.exr"))
@@ -1316,7 +1316,7 @@ def run_on_passes(image: np.ndarray, depth: np.ndarray, graph: Graph, values: di
 
     import bpy
 
-    from mpib_validate.io.exr import read_exr, rgba_from
+    from mpib_validate.runtime.io.exr import read_exr, rgba_from
 
     image = np.asarray(image, np.float32)
     H, W = image.shape[:2]

@@ -70,7 +70,7 @@ FFT_BYTES_PER_PX = 64
 #: and ``composite.HELD_JOBS`` finished ahead of it.
 HELD_OUTPUTS = 2
 #: Working set of one blur job of a layer stored as tiles: a batch of
-#: :data:`mpib_validate.compositor.kernels.BATCH_BYTES` of float32 windows (the windows
+#: :data:`mpib_validate.runtime.compositor.kernels.BATCH_BYTES` of float32 windows (the windows
 #: at the transform's size, spectrum, inverse and result: about four times that),
 #: whatever the layer's box; a held output of one is at most a batch.
 TILED_BLUR_BYTES = 4 * (32 << 20)
@@ -238,7 +238,7 @@ def _plane_tile_area(D: np.ndarray, planes: np.ndarray, slab: float | None = Non
     (:func:`mpi._slab_of_groups`); the plane then stores the tiles of each interval.
 
     Returns the tile pixels per plane and the number of layers on it (1 or 2)."""
-    from mpib_validate.layers.mpi import TILE_PX as T, _slab_of_groups
+    from mpib_validate.runtime.layers.mpi import TILE_PX as T, _slab_of_groups
 
     H, W = D.shape
     n = len(planes)
@@ -305,7 +305,7 @@ def _plane_boxes(D: np.ndarray, planes: np.ndarray, A: float, jump: float,
     w = np.where(w > 0, np.minimum(w + 2 * g, W), 0)
     if not tiles:
         return h, w
-    from mpib_validate.layers.mpi import TILED_FILL_MAX
+    from mpib_validate.runtime.layers.mpi import TILED_FILL_MAX
 
     box = h.astype(np.float64) * w
     area, count = _plane_tile_area(D, planes, slab)
@@ -368,7 +368,7 @@ EXACT_INTERVALS_PX = 1 << 22
 
 
 def _intervals(D: np.ndarray, step: float) -> list[tuple[float, float]]:
-    from mpib_validate.layers.passes import _content_intervals
+    from mpib_validate.runtime.layers.passes import _content_intervals
 
     v = D.ravel()
     if v.size <= EXACT_INTERVALS_PX:
@@ -386,7 +386,7 @@ def _intervals(D: np.ndarray, step: float) -> list[tuple[float, float]]:
 def _plane_placement(D: np.ndarray, A: float, settings) -> np.ndarray:
     """The planes ``layers_from_passes`` places for disparities ``D`` (an upper bound:
     its content is a subset of these values)."""
-    from mpib_validate.layers.mpi import adaptive_planes, plane_spacing, uniform_planes
+    from mpib_validate.runtime.layers.mpi import adaptive_planes, plane_spacing, uniform_planes
 
     if settings.planes == "uniform":
         return uniform_planes(settings.n_uniform, max(float(D.max()), 1e-9) * (1 + 1e-9))
@@ -454,9 +454,9 @@ def refocus_estimate(disparity: np.ndarray, blur_parameter: float, focus_dispari
     ``d_f`` and a preset's settings, blurring on ``threads`` threads (default: as many
     as the compositor uses here, ``composite.blur_threads()``). Costs a few passes over
     the disparity."""
-    from mpib_validate.compositor.composite import blur_threads
-    from mpib_validate.compositor.kernels import KERNEL_CACHE_BYTES
-    from mpib_validate.presets import get_preset
+    from mpib_validate.runtime.compositor.composite import blur_threads
+    from mpib_validate.runtime.compositor.kernels import KERNEL_CACHE_BYTES
+    from mpib_validate.runtime.presets import get_preset
 
     threads = blur_threads() if threads is None else max(1, int(threads))
     D = np.asarray(disparity, np.float64)

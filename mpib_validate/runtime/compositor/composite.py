@@ -16,7 +16,7 @@ The output is ``(H, W, 4)`` float32: normalised linear colour and, in the fourth
 channel, the composited alpha ``1 - prod (1 - alpha_i * K_i)`` (the coverage).
 
 Eq. 1 replaces the aperture average of a product (visibility times colour) by a
-product of averages, so it is not exact even with perfect layers. :func:`render_exact`
+product of averages, so it is not exact even with perfect layers. :func:`mpib_validate.cards.mpi.render_exact`
 renders the MPI through every aperture sample instead (exact for fronto-parallel
 layers); :func:`render_subapertures` sits between the two: it splits the aperture into
 ``k x k`` equal-area parts, composites each with Eq. 1 using that part's own kernels,
@@ -30,7 +30,7 @@ Fast paths, all optional and each checked against the plain path in the tests:
 
 - ``conv="fft"`` (or ``"auto"``): FFT convolution instead of direct;
 - ``crop=True``: each layer is blurred only over its content box grown by its kernel
-  radius (empty planes are never stored, see :mod:`mpib_validate.layers.mpi`);
+  radius (empty planes are never stored, see :mod:`mpib_validate.runtime.layers.mpi`);
 - ``reduce_above=R``: a layer whose radius exceeds ``R`` px is blurred at
   ``1/s`` resolution (``s = ceil(r / R)``, area-averaged down over the canvas's grid
   of ``s x s`` cells, bilinear up), with the disk shrunk so that the blur's second
@@ -53,9 +53,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from mpib_validate.compositor import kernels as _k
-from mpib_validate.layers import mpi as _M
-from mpib_validate.layers.mpi import MPI, Layer
+from mpib_validate.runtime.compositor import kernels as _k
+from mpib_validate.runtime.layers import mpi as _M
+from mpib_validate.runtime.layers.mpi import MPI, Layer
 
 
 @dataclass(frozen=True)
@@ -65,7 +65,7 @@ class CompositeSettings:
     Attributes:
         kernel: ``canonical`` (exact for the ray tracer's pixel model: nearest-texel
             card textures), ``continuous`` (the canonical kernel at
-            :func:`~mpib_validate.compositor.kernels.continuous_radius`: a render of
+            :func:`~mpib_validate.runtime.compositor.kernels.continuous_radius`: a render of
             continuous geometry or a photograph) or ``soft`` (official soft disk at
             integer radius).
         conv: ``direct``, ``fft`` or ``auto``.
@@ -73,7 +73,7 @@ class CompositeSettings:
         reduce_above: radius (px) above which a layer is blurred at reduced
             resolution; ``None`` = never.
         backend: ``numpy`` (scipy direct/FFT), or ``llvm`` / ``cuda`` for the Dr.Jit
-            gather-based blur (:mod:`mpib_validate.compositor.blur_drjit`; ``conv`` is then
+            gather-based blur (:mod:`mpib_validate.runtime.compositor.blur_drjit`; ``conv`` is then
             ignored). A Dr.Jit backend that cannot run falls back to numpy with a notice.
         slab_px: for an MPI of additive groups (:attr:`mpi.Layer.group`): consecutive
             groups whose blur radii span at most this many pixels are summed as one
@@ -163,11 +163,11 @@ def _reduced_kernel(rho: float, s: int, settings, cell):
 def _correlate(padded: np.ndarray, kernel: np.ndarray, settings: CompositeSettings,
                peak=None) -> np.ndarray:
     if settings.backend != "numpy" and kernel.shape != (1, 1):
-        from mpib_validate.compositor.backend import notify, resolve
+        from mpib_validate.runtime.compositor.backend import notify, resolve
 
         be = resolve(settings.backend)
         if be.name != "numpy":
-            from mpib_validate.compositor.blur_drjit import correlate_drjit
+            from mpib_validate.runtime.compositor.blur_drjit import correlate_drjit
 
             # the Dr.Jit kernel takes up to 4 channels: extras go in a second call
             parts = [correlate_drjit(padded[..., c:c + 4], kernel, be.name)
@@ -270,13 +270,13 @@ def _blur_layer(layer: Layer, box, canvas, kernel: np.ndarray, settings: Composi
 
 
 #: Side (px) of the canvas tiles on which the compositor records where a group was
-#: written (the layers' storage tiles, :data:`mpib_validate.layers.mpi.TILE_PX`).
+#: written (the layers' storage tiles, :data:`mpib_validate.runtime.layers.mpi.TILE_PX`).
 _TILE = _M.TILE_PX
 
 
 def _window_cost(h: int, w: int, taps: int) -> float:
     """Relative cost of correlating one padded window of ``h x w`` pixels: per pixel
-    the taps (direct) or the FFT's (:func:`mpib_validate.compositor.kernels.fft_cost`),
+    the taps (direct) or the FFT's (:func:`mpib_validate.runtime.compositor.kernels.fft_cost`),
     whichever is less."""
     n = h * w
     return n * min(taps, _k.fft_cost(n))
@@ -367,7 +367,7 @@ def _blur_jobs(layer: Layer, rho: float, box, canvas, settings: CompositeSetting
     square output tiles (:func:`_tile_plan`: the side that costs least, or none); a tile
     whose input window (the tile grown by the kernel radius) holds no content of the
     layer is skipped, and the kept windows are blurred in batches
-    (:func:`mpib_validate.compositor.kernels.correlate_batch`), one job each. Each
+    (:func:`mpib_validate.runtime.compositor.kernels.correlate_batch`), one job each. Each
     output pixel is the same correlation of the same window as untiled, with the same
     FFT noise floor (the layer's channel peaks): only rounding differs (an FFT of
     another size). Otherwise the box is one job of one part."""
@@ -567,7 +567,7 @@ def blur_threads() -> int:
 
 
 #: Most threads blurring at once (each holds one job's working set,
-#: :data:`mpib_validate.budget.TILED_BLUR_BYTES`).
+#: :data:`mpib_validate.runtime.budget.TILED_BLUR_BYTES`).
 MAX_BLUR_THREADS = 4
 #: Jobs done ahead of the "over" steps, beyond those running: their blurred parts are
 #: the memory the overlap costs besides the running jobs' working sets.
@@ -617,7 +617,7 @@ class _OrderedPool:
     early (an exception in the consumer, e.g. a cancelling ``progress``) stops that
     thread, drops the jobs not started and waits for the running ones, so no thread
     outlives it. Each worker runs its FFTs on ``max(1, cores // threads)`` threads
-    (:func:`mpib_validate.compositor.kernels.set_fft_workers`)."""
+    (:func:`mpib_validate.runtime.compositor.kernels.set_fft_workers`)."""
 
     def __init__(self, items, threads: int, held: int):
         from concurrent.futures import ThreadPoolExecutor
@@ -953,27 +953,6 @@ def render_subapertures(mpi: MPI, blur_parameter: float, focus_disparity: float,
                                     part_progress)
             total += acc  # premultiplied colour and normaliser: the aperture average
     return _normalise((total / (k * k)).astype(np.float32), cmax)
-
-
-def render_exact(mpi: MPI, camera, samples=None, backend: str = "auto") -> np.ndarray:
-    """Render the MPI through every aperture sample (exact for fronto-parallel layers).
-
-    Each layer becomes a fronto-parallel card and the Eq. 15 tracer renders it: each
-    sample shifts layer ``i`` by ``A (d_i - d_f) (mu, nu)`` and composites front to
-    back. Returns ``(H, W, 4)`` in the same form as :func:`composite` (normalised colour
-    and coverage).
-    """
-    from mpib_validate.cards import samples as _s
-    from mpib_validate.layers.mpi import mpi_to_scene
-    from mpib_validate.cards.trace import trace
-
-    img, _ = trace(mpi_to_scene(mpi, camera), samples or _s.stratified(1024),
-                   backend=backend, notices=False)
-    out = np.zeros_like(img)
-    a = img[..., 3:4]
-    np.divide(img[..., :3], a, out=out[..., :3], where=a > 0)
-    out[..., 3] = img[..., 3]
-    return out
 
 
 def timed(fn, *args, **kwargs):

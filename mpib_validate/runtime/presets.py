@@ -8,8 +8,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from mpib_validate.compositor.composite import CompositeSettings
-from mpib_validate.layers.passes import PassesSettings
+from mpib_validate.runtime.compositor.composite import CompositeSettings
+from mpib_validate.runtime.layers.passes import PassesSettings
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,7 @@ A thin adapter written from the supplement's Eq. 1 and the official code's docum
 behaviour (``shared/REFERENCE.md``, section "The official MPIB renderer"); no source of
 the official code is copied or vendored. It exists so that ``mpib bench --suite official``
 can time and score the official code path side by side with
-:func:`mpib_validate.compositor.composite.composite` on the same MPI. torch is an
+:func:`mpib_validate.runtime.compositor.composite.composite` on the same MPI. torch is an
 optional extra (``pip install -e ".[official]"``, CPU build 2.13.0); nothing else in the
 project imports this module.
 
@@ -65,8 +65,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mpib_validate.compositor.kernels import soft_disk
-from mpib_validate.layers.mpi import MPI, uniform_planes
+from mpib_validate.runtime.compositor.kernels import soft_disk
+from mpib_validate.runtime.layers.mpi import MPI, uniform_planes
 
 #: planes of the official MPI
 OFFICIAL_PLANES = 32

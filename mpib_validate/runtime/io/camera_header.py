@@ -24,7 +24,7 @@ The object's ``camera`` member has one or both of these forms:
                            whose depth of field ignores the scene's Unit Scale
     ``width``, ``height``  rendered size in pixels (resolution times percentage)
 
-  which :func:`mpib_validate.camera.blender_camera` turns into ``A = R f_px`` and
+  which :func:`mpib_validate.runtime.camera.blender_camera` turns into ``A = R f_px`` and
   ``d_f = 1 / focus_distance``;
 
 image-space (``mpib render``, and what a refocus used)
@@ -39,7 +39,7 @@ f-stop, sensor and focus are then options. A ``mpib refocus`` output records in
 
 :func:`read_camera` parses and checks a header (errors name the file and the field);
 :func:`resolve` merges it with command-line values field by field into a
-:class:`~mpib_validate.camera.Camera` (:func:`camera_from_header` with none);
+:class:`~mpib_validate.runtime.camera.Camera` (:func:`camera_from_header` with none);
 :func:`stamp_note` writes the note.
 """
 
@@ -49,7 +49,7 @@ import json
 import math
 from dataclasses import dataclass
 
-from mpib_validate.camera import (DEFAULT_SENSOR_FIT, DEFAULT_SENSOR_HEIGHT_MM, DEFAULT_SENSOR_MM, SENSOR_FITS, Camera, blender_camera)
+from mpib_validate.runtime.camera import (DEFAULT_SENSOR_FIT, DEFAULT_SENSOR_HEIGHT_MM, DEFAULT_SENSOR_MM, SENSOR_FITS, Camera, blender_camera)
 
 ATTRIBUTE = "mpib"
 NOTE_ATTRIBUTE = "Note"

@@ -5,7 +5,7 @@ pixel (Blender's Combined and Depth passes), nothing behind the foreground. The 
 
 1. :func:`depth_to_disparity`: ``d = 1/Z``; depth at or beyond ``far_limit`` (Cycles
    writes 1e10 for the background) is infinitely far, ``d = 0``.
-2. Occlusion regions and the hidden-background fill (:mod:`mpib_validate.layers.fill`).
+2. Occlusion regions and the hidden-background fill (:mod:`mpib_validate.runtime.layers.fill`).
 3. Edge pixels: an anti-aliased pixel on a depth edge mixes foreground and background
    colour, but its depth is one or the other. Such a pixel is unmixed: with the
    foreground colour ``c_n`` (filled from nearby pure foreground) and the background
@@ -22,7 +22,7 @@ pixel (Blender's Combined and Depth passes), nothing behind the foreground. The 
    instead of staying sharp or blurring with the background's radius.
 4. The sheets (hidden background, unmixed background parts, visible pixels, unmixed
    foreground parts, far to near) are cut into planes with
-   :func:`mpib_validate.layers.mpi.layers_from_sheets`: each pixel is shared between its two
+   :func:`mpib_validate.runtime.layers.mpi.layers_from_sheets`: each pixel is shared between its two
    neighbouring planes so that Eq. 16 gives back its disparity.
 """
 
@@ -34,8 +34,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mpib_validate.layers import fill as _fill
-from mpib_validate.layers.mpi import (SNAP_PX, MPI, Pixels, Sheet, adaptive_planes, layers_from_sheets, plane_spacing, uniform_planes)
+from mpib_validate.runtime.layers import fill as _fill
+from mpib_validate.runtime.layers.mpi import (SNAP_PX, MPI, Pixels, Sheet, adaptive_planes, layers_from_sheets, plane_spacing, uniform_planes)
 
 
 class PassError(ValueError):
@@ -94,7 +94,7 @@ class PassesSettings:
             one in front (an error within a band of that many pixels).
         refine: ``"off"`` (the disparity is trusted: exact depth from a renderer) or
             ``"guided"`` (an unreliable, e.g. predicted, disparity: its edges are moved
-            onto the colour edges first, :func:`mpib_validate.layers.refine.refine_disparity`),
+            onto the colour edges first, :func:`mpib_validate.runtime.layers.refine.refine_disparity`),
             or ``"guided-thin"`` (the same, and structures thinner than the prediction's
             blur recovered from the local mean: ``thin=True``, no ``flip_px`` limit).
     """
@@ -301,11 +301,11 @@ def known_background_mask(colour, disparity, far_field, near_next, known_rgb, kn
 
 def mpi_from_sheets(sheets, blur_parameter: float, settings: PassesSettings, height: int,
                     width: int) -> MPI:
-    """Place the planes for ``sheets`` (far to near; :class:`~mpib_validate.layers.mpi.Sheet` or
-    :class:`~mpib_validate.layers.mpi.Pixels`) as ``settings`` say and cut the sheets into them:
-    adaptive planes (:func:`~mpib_validate.layers.mpi.adaptive_planes`) over the disparity
+    """Place the planes for ``sheets`` (far to near; :class:`~mpib_validate.runtime.layers.mpi.Sheet` or
+    :class:`~mpib_validate.runtime.layers.mpi.Pixels`) as ``settings`` say and cut the sheets into them:
+    adaptive planes (:func:`~mpib_validate.runtime.layers.mpi.adaptive_planes`) over the disparity
     intervals that hold content (alpha > 0), or ``n_uniform`` planes up to the largest
-    disparity; then :func:`~mpib_validate.layers.mpi.layers_from_sheets` with the setting's split."""
+    disparity; then :func:`~mpib_validate.runtime.layers.mpi.layers_from_sheets` with the setting's split."""
     values = np.concatenate([np.asarray(sh.disparity, np.float64)[np.asarray(sh.alpha) > 0]
                              for sh in sheets])
     if settings.planes == "uniform":
@@ -360,7 +360,7 @@ def sheets_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
                         f"got {blur_parameter}")
     H, W = D.shape
     if settings.refine in ("guided", "guided-thin"):
-        from mpib_validate.layers.refine import refine_disparity
+        from mpib_validate.runtime.layers.refine import refine_disparity
 
         thin = settings.refine == "guided-thin"
         D = refine_disparity(rgb, D, blur_parameter, thin=thin,

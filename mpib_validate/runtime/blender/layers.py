@@ -1,6 +1,6 @@
 """Depth groups as Blender view layers: one view layer per group, the others Indirect Only.
 
-For the layered input of :mod:`mpib_validate.layers.layered`, Cycles renders each depth group
+For the layered input of :mod:`mpib_validate.runtime.layers.layered`, Cycles renders each depth group
 in a view layer ``mpib_group_<k>`` (``k = 0`` farthest) in the same F12 render:
 
 - the group's objects are linked into a new collection ``mpib_group_<k>`` (they stay in
@@ -17,7 +17,7 @@ in a view layer ``mpib_group_<k>`` (``k = 0`` farthest) in the same F12 render:
   was opaque the farthest layer also gets the Environment pass (the world as camera
   rays see it, weighted by the samples that miss every object): ``Combined +
   Environment`` is that layer with the world behind it, opaque
-  (:func:`mpib_validate.refocus.load_layered_passes` adds them).
+  (:func:`mpib_validate.runtime.refocus.load_layered_passes` adds them).
 
 What the trick gets wrong: light that reaches the camera *through* a nearer group
 (refraction, or a transparent BSDF seen in the farther layer) is rendered in the nearer
@@ -196,7 +196,7 @@ def auto_groups(scene, max_groups: int = 3, depth=None) -> tuple[list[list], str
     W, H = r.resolution_x * r.resolution_percentage // 100, r.resolution_y * r.resolution_percentage // 100
     refined = depth is not None and np.shape(depth) == (H, W)
     if refined:
-        from mpib_validate.layers.passes import PassError, depth_to_disparity
+        from mpib_validate.runtime.layers.passes import PassError, depth_to_disparity
 
         try:
             D = depth_to_disparity(np.asarray(depth, np.float64), source="the last render's Z")

@@ -11,15 +11,15 @@
 
 Scatter and gather quantise radii to ``1/step`` px and run one FFT convolution per
 radius group, which is exact for the quantised radii (cost: one convolution per group).
-All kernels use the project's convolution paths (:mod:`mpib_validate.compositor.kernels`).
+All kernels use the project's convolution paths (:mod:`mpib_validate.runtime.compositor.kernels`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from mpib_validate.compositor import kernels as _k
-from mpib_validate.layers.mpi import uniform_planes
+from mpib_validate.runtime.compositor import kernels as _k
+from mpib_validate.runtime.layers.mpi import uniform_planes
 
 
 def _blur(img: np.ndarray, kernel: np.ndarray) -> np.ndarray:

@@ -1,7 +1,7 @@
 """From layered passes (one view layer per depth group) to an MPI.
 
 Blender renders each depth group in its own view layer with the film transparent, the
-other groups' collections *Indirect Only* (:mod:`mpib_validate.blender.layers`). Each
+other groups' collections *Indirect Only* (:mod:`mpib_validate.runtime.blender.layers`). Each
 group layer then holds, premultiplied, exactly what the group's objects contribute:
 colour ``P_k`` (linear radiance times coverage), Cycles' own coverage ``a_k`` at its
 silhouettes, and its own depth, including everything that nearer groups hide. The
@@ -11,19 +11,19 @@ group layers composited with "over", far to near,
 
 give back the single-pass Combined render (to the render noise).
 
-The MPI is built with the same machinery as :func:`mpib_validate.layers.passes.layers_from_passes`:
+The MPI is built with the same machinery as :func:`mpib_validate.runtime.layers.passes.layers_from_passes`:
 
 - the farthest group is a single-pass input of its own (film alpha as an extra channel,
-  as :func:`mpib_validate.refocus.refocus` does for a transparent film): its internal
+  as :func:`mpib_validate.runtime.refocus.refocus` does for a transparent film): its internal
   depth edges (a wall behind a ground plane, a brow over an eye socket) are unmixed and
-  the hidden surface behind them filled (:mod:`mpib_validate.layers.fill`). That is the only
+  the hidden surface behind them filled (:mod:`mpib_validate.runtime.layers.fill`). That is the only
   place a fill is needed: behind every nearer group lies a farther group's rendered
   content, or the world (transparent, infinitely far: film alpha 0).
-- each nearer group is one :class:`~mpib_validate.layers.mpi.Sheet` with its straight colour
+- each nearer group is one :class:`~mpib_validate.runtime.layers.mpi.Sheet` with its straight colour
   ``P_k / a_k`` and alpha ``a_k``: its pixels with ``a_k < 1`` at silhouettes are exact
   coverage, so nothing is unmixed there. A nearer group's own internal depth edges are
   not unmixed (a pixel goes whole to its depth), as in the official pipeline.
-- planes and split: :func:`mpib_validate.layers.passes.mpi_from_sheets` (adaptive planes over
+- planes and split: :func:`mpib_validate.runtime.layers.passes.mpi_from_sheets` (adaptive planes over
   every group's content, the settings' split).
 
 Depth at a group's partly covered pixel: Cycles writes the Z of the pixel centre's
@@ -37,8 +37,8 @@ import time
 
 import numpy as np
 
-from mpib_validate.layers.mpi import MPI, Sheet
-from mpib_validate.layers.passes import (DEFAULT_FAR_LIMIT, PassError, PassesInfo, PassesSettings, mpi_from_sheets, sheets_from_passes)
+from mpib_validate.runtime.layers.mpi import MPI, Sheet
+from mpib_validate.runtime.layers.passes import (DEFAULT_FAR_LIMIT, PassError, PassesInfo, PassesSettings, mpi_from_sheets, sheets_from_passes)
 
 #: A farthest group whose alpha is at least this everywhere is opaque (no film channel).
 OPAQUE_ALPHA = 1.0 - 1e-6
@@ -95,7 +95,7 @@ def layers_from_layered_passes(groups, blur_parameter: float,
             alpha (H, W) coverage, disparity (H, W) 1/scene-unit)`` per group (the
             disparity from :func:`group_disparity`). At least one group.
         blur_parameter: ``A`` (pixels per unit disparity): plane spacing and fill reach.
-        settings: as for :func:`~mpib_validate.layers.passes.layers_from_passes`.
+        settings: as for :func:`~mpib_validate.runtime.layers.passes.layers_from_passes`.
         progress: optional ``progress(fraction)``; raising from it stops the work.
 
     Returns the MPI (colour channels premultiplied RGB, alpha, then, unless the farthest

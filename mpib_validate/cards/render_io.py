@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mpib_validate.io.exr import channels_from_rgba, write_exr
-from mpib_validate.io.preview import write_png
+from mpib_validate.runtime.io.exr import channels_from_rgba, write_exr
+from mpib_validate.runtime.io.preview import write_png
 from mpib_validate.cards.scene import Scene
 from mpib_validate.cards.trace import TraceResult
 

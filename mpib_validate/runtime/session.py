@@ -1,6 +1,6 @@
 """Refocus one picture many times: the MPI is built once, a new focus only re-composites.
 
-What the MPI of rendered passes depends on (:func:`mpib_validate.layers.passes.layers_from_passes`):
+What the MPI of rendered passes depends on (:func:`mpib_validate.runtime.layers.passes.layers_from_passes`):
 the colour and depth, the preset's settings and the blur parameter ``A`` (pixels per
 unit disparity), through the plane spacing ``2 tol / A``, the edge threshold
 ``jump_px / A``, the occlusion reach ``A (d_near - d_far)`` of the fill and the slab span
@@ -8,7 +8,7 @@ unit disparity), through the plane spacing ``2 tol / A``, the edge threshold
 ``r = A |d_i - d_f|`` of each plane enters only in the compositor (Eq. 1). So:
 
 - **New focus, same ``A``**: only Eq. 1 runs again, on the cached MPI. The result is
-  the one :func:`mpib_validate.refocus.refocus` gives (the same function on the same
+  the one :func:`mpib_validate.runtime.refocus.refocus` gives (the same function on the same
   layers: equal to the last bit).
 - **New f-stop, ``A <= A_b``** (the ``A`` the cached MPI was built for) and
   ``A >= A_b * REUSE_DOWN_TO``: the cached MPI is reused. Its guarantees at ``A`` are
@@ -32,7 +32,7 @@ passes subsampled ``s x s`` instead, at ``1/s^2`` of the build's cost.
 
 Memory: the session keeps the passes (the caller's), one MPI (``16 B`` per stored layer
 pixel and channel group of four float32, see :attr:`RefocusSession.cache_bytes`;
-:func:`mpib_validate.budget.refocus_estimate` estimates it before the build as its
+:func:`mpib_validate.runtime.budget.refocus_estimate` estimates it before the build as its
 ``layers`` part) and its previews. An MPI larger than ``max_cache_bytes`` is not kept:
 each render then rebuilds it (as :func:`refocus` does), and ``info["mpi"]`` says so.
 """
@@ -46,10 +46,11 @@ import time
 
 import numpy as np
 
-from mpib_validate.layers.mpi import MPI, Layer
-from mpib_validate.layers.passes import DEFAULT_FAR_LIMIT
-from mpib_validate.presets import get_preset
-from mpib_validate.refocus import (BuiltMPI, Passes, RefocusResult, _check_camera, build_mpi,
+from mpib_validate.runtime.layers.mpi import MPI, Layer
+from mpib_validate.runtime.layers.passes import DEFAULT_FAR_LIMIT
+from mpib_validate.runtime.presets import get_preset
+from mpib_validate.runtime.layers.cache import passes_digest
+from mpib_validate.runtime.refocus import (BuiltMPI, Passes, RefocusResult, _check_camera, build_mpi,
                                    render_built, result_info)
 
 #: A cached MPI built for ``A_b`` is reused down to ``A = REUSE_DOWN_TO * A_b``; below
@@ -134,18 +135,6 @@ def subsample_passes(passes: Passes, s: int) -> Passes:
                    disparity=pick(passes.disparity))
 
 
-def passes_digest(passes: Passes, background=None) -> str:
-    """SHA-256 of the passes' pixels (colour, depth, film alpha, the layered groups) and
-    of the background render if any: equal digests mean an MPI built from one serves
-    the other. About 0.1 s for 1920x1080."""
-    from mpib_validate.layers.cache import digest_arrays
-
-    groups = [a for g in (passes.groups or ()) for a in g]
-    return digest_arrays([passes.colour, passes.depth, passes.alpha, len(groups)] + groups
-                         + ["disparity", passes.disparity, "pixel model", passes.pixel_model]
-                         + ["background"] + list(background or ()))
-
-
 def file_stamps(paths) -> tuple:
     """``(path, mtime_ns, size)`` of each existing input file: a change to any of them
     invalidates a session built from them (:meth:`RefocusSession.is_current`)."""
@@ -168,9 +157,9 @@ class RefocusSession:
     docstring for what is reused and with which error bound).
 
     Args:
-        passes: from :func:`mpib_validate.refocus.load_passes` (or the layered loader).
-        preset: the quality preset (:mod:`mpib_validate.presets`).
-        far_limit, background: as for :func:`mpib_validate.refocus.refocus`.
+        passes: from :func:`mpib_validate.runtime.refocus.load_passes` (or the layered loader).
+        preset: the quality preset (:mod:`mpib_validate.runtime.presets`).
+        far_limit, background: as for :func:`mpib_validate.runtime.refocus.refocus`.
         stamps: the input files' :func:`file_stamps`, so that :meth:`is_current` can
             tell when they changed (:meth:`from_files` fills it in).
         exact_aperture: rebuild the MPI whenever ``A`` changes (every result then
@@ -197,9 +186,9 @@ class RefocusSession:
 
     @classmethod
     def from_files(cls, path, depth_path=None, view_layer=None, **kwargs) -> "RefocusSession":
-        """Load the passes (:func:`mpib_validate.refocus.load_passes`) and remember the
+        """Load the passes (:func:`mpib_validate.runtime.refocus.load_passes`) and remember the
         files' stamps."""
-        from mpib_validate.refocus import load_passes
+        from mpib_validate.runtime.refocus import load_passes
 
         stamps = file_stamps([path, depth_path])
         return cls(load_passes(path, depth_path, view_layer=view_layer), stamps=stamps,
@@ -329,7 +318,7 @@ class RefocusSession:
 
     def focus_at_pixel(self, x: int, y: int) -> float:
         """Disparity to focus on pixel ``(x, y)`` (full-resolution, from the top left)."""
-        from mpib_validate.refocus import focus_from_pixel
+        from mpib_validate.runtime.refocus import focus_from_pixel
 
         return focus_from_pixel(self.passes, x, y, self.far_limit)
 

@@ -1,7 +1,7 @@
 """Gather-based layer blur in Dr.Jit (LLVM on the CPU, CUDA on a GPU).
 
 Dr.Jit has no FFT, so the correlation is computed directly, but not tap by tap: the
-kernel is written as row boxes (:func:`mpib_validate.compositor.kernels.row_boxes`, ~5 per row for
+kernel is written as row boxes (:func:`mpib_validate.runtime.compositor.kernels.row_boxes`, ~5 per row for
 a disk with its exact plateau) and each box costs two lookups in per-row prefix sums::
 
     out(y, x) = sum_boxes h * (S[y + dy, x + b + 1] - S[y + dy, x + a]),
@@ -17,8 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from mpib_validate.compositor import backend as _backend
-from mpib_validate.compositor.kernels import kernel_radius, row_boxes
+from mpib_validate.runtime.compositor import backend as _backend
+from mpib_validate.runtime.compositor.kernels import kernel_radius, row_boxes
 
 _TABLES: dict = {}
 
@@ -38,7 +38,7 @@ def _table(kernel: np.ndarray):
 
 def correlate_drjit(padded: np.ndarray, kernel: np.ndarray, device: str = "llvm") -> np.ndarray:
     """Valid-mode correlation of a padded ``(H, W, C)`` array (C <= 4) with ``kernel``,
-    like :func:`mpib_validate.compositor.kernels.correlate`, computed with Dr.Jit."""
+    like :func:`mpib_validate.runtime.compositor.kernels.correlate`, computed with Dr.Jit."""
     dr = _backend.import_drjit()
     if device == "cuda":
         import drjit.cuda as m

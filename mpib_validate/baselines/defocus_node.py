@@ -46,8 +46,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mpib_validate.blender import compat as _compat
-from mpib_validate.io import exr as _exr
+from mpib_validate.runtime.blender import compat as _compat
+from mpib_validate.runtime.io import exr as _exr
 
 #: Blender's default sensor height (mm), used by the AUTO-fit defect.
 DEFAULT_SENSOR_HEIGHT_MM = 24.0
@@ -294,9 +294,9 @@ def measure_defects(size: int = 64, blur_parameter: float = 40.0, focus_disparit
       on the square (ideal 1; the per-pixel renormalisation near the square's edge
       gives energy back there).
     """
-    from mpib_validate.cards import samples as _samples
+    from mpib_validate.runtime import samples as _samples
     from mpib_validate.cards import trace as _trace
-    from mpib_validate.camera import Camera
+    from mpib_validate.runtime.camera import Camera
     from mpib_validate.cards.scene import Card, Plane, Scene
 
     n = int(size)
@@ -382,7 +382,7 @@ def score_against_tracer(scene, reference: np.ndarray | None = None, ref_samples
     same scores for the unblurred all-in-focus image (``aif_psnr``, ``aif_psnr_ob``)."""
     from mpib_validate.blender import cycles as _cycles
     from mpib_validate.cards import evaluate as _evaluate
-    from mpib_validate.cards import samples as _samples
+    from mpib_validate.runtime import samples as _samples
     from mpib_validate.cards import trace as _trace
 
     if reference is None:

@@ -6,13 +6,13 @@ import os
 
 import numpy as np
 
-from mpib_validate.io.atomic import atomic_path
-from mpib_validate.io.photo import linear_to_srgb
+from mpib_validate.runtime.io.atomic import atomic_path
+from mpib_validate.runtime.io.colour import linear_to_srgb
 
 
 def srgb_encode(linear: np.ndarray) -> np.ndarray:
     """The sRGB OETF on values clipped to [0, 1]: ``12.92 v`` below 0.0031308, else
-    ``1.055 v^(1/2.4) - 0.055`` (:func:`mpib_validate.io.photo.linear_to_srgb`)."""
+    ``1.055 v^(1/2.4) - 0.055`` (:func:`mpib_validate.runtime.io.colour.linear_to_srgb`)."""
     return linear_to_srgb(linear)
 
 
