@@ -374,6 +374,9 @@ def _plan_and_refocus(args, passes, A: float, d_f: float, D, background=None,
             result, reused, entry = refocus_cached(passes, A, d_f, args.mpi_cache, args.preset,
                                                    args.far_limit, background, progress,
                                                    refine)
+            notice = result.info["mpi_cache"].get("notice")
+            if notice:
+                print(f"mpib refocus: {notice}", file=sys.stderr, flush=True)
             print(f"{'reused the cached MPI' if reused else 'built the MPI and cached it as'} "
                   f"{entry}" + (" (same inputs, preset, far limit and aperture)" if reused
                                 else ""), flush=True)

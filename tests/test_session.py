@@ -233,3 +233,147 @@ def test_the_focus_pull_bench_times_every_kind_of_render(scene_file):
     assert all(r["seconds"] > 0 and r["cpu_ratio"] > 0 for r in res["rows"])
     text = "\n".join(markdown(res))
     assert "| new focus (cached MPI) |" in text and "cached MPI" in text
+
+
+def _forge(cache, change):
+    """Rewrite the one entry of ``cache``: ``change(arrays, meta)`` edits the layers and
+    the description in place; the checksum is then made to match, as a careful forger
+    (or a program that re-saves the files) would."""
+    import json
+
+    from mpib_validate.runtime.layers.cache import file_sha256
+
+    (npz,) = cache.glob("*.npz")
+    meta = npz.with_suffix(".json")
+    with np.load(npz) as z:
+        arrays = {k: z[k] for k in z.files}
+    m = json.loads(meta.read_text())
+    change(arrays, m)
+    with open(npz, "wb") as fh:
+        np.savez(fh, **arrays)
+    m["sha256"] = file_sha256(npz)
+    meta.write_text(json.dumps(m))
+
+
+def _nan_layer(a, m):
+    a["rgba0"] = a["rgba0"].copy()
+    a["rgba0"][0, 0, 0] = np.nan
+
+
+def _five_channels(a, m):
+    for k in [k for k in a if k.startswith("rgba")]:
+        a[k] = np.concatenate([a[k], a[k][..., 3:4]], axis=-1)
+
+
+def _smaller_frame(a, m):
+    a["meta"] = a["meta"].copy()
+    a["meta"][:2] //= 2
+    for k in [k for k in a if k.startswith("rgba")]:
+        a[k] = a[k][::2, ::2]
+
+
+def _outside_canvas(a, m):
+    a["where0"] = a["where0"].copy()
+    a["where0"][1] = 10_000
+
+
+@pytest.mark.parametrize("damage", [
+    "nan", "channels", "other-frame", "outside", "truncated", "other-key", "nested-json",
+    "not-an-object"])
+def test_cli_mpi_cache_checks_every_entry_before_use(scene_file, tmp_path, damage):
+    """A cache folder is untrusted input: an entry with NaN layers, the wrong channel
+    count, another frame's layers, a layer outside the canvas, a truncated file, another
+    key's description or a hostile JSON is not used; the MPI is rebuilt with a one-line
+    notice naming the entry, and the output equals a fresh one."""
+    import json
+
+    d, _ = scene_file
+    cache = tmp_path / "cache"
+    rc, stdout, err = run("refocus", d / "in.exr", "-o", tmp_path / "fresh.exr", "-q",
+                          "--no-preview", "--mpi-cache", cache)
+    assert rc == 0, err
+    (npz,) = cache.glob("*.npz")
+    meta = npz.with_suffix(".json")
+    if damage == "nan":
+        _forge(cache, _nan_layer)
+    elif damage == "channels":
+        _forge(cache, _five_channels)
+    elif damage == "other-frame":
+        _forge(cache, _smaller_frame)
+    elif damage == "outside":
+        _forge(cache, _outside_canvas)
+    elif damage == "truncated":
+        npz.write_bytes(npz.read_bytes()[: npz.stat().st_size // 2])
+    elif damage == "other-key":
+        m = json.loads(meta.read_text())
+        m["key"] = "0" * 64
+        meta.write_text(json.dumps(m))
+    elif damage == "nested-json":
+        meta.write_text("[" * 5000 + "]" * 5000)
+    elif damage == "not-an-object":
+        meta.write_text("[1, 2, 3]")
+    rc, stdout, err = run("refocus", d / "in.exr", "-o", tmp_path / "again.exr", "-q",
+                          "--no-preview", "--mpi-cache", cache)
+    assert rc == 0, err
+    assert "Traceback" not in err
+    notices = [l for l in err.splitlines() if "MPI cache entry" in l]
+    assert len(notices) == 1 and npz.name in notices[0] and "rebuilding" in notices[0], err
+    assert "built the MPI" in stdout
+    fresh = read_exr(tmp_path / "fresh.exr").channels
+    again = read_exr(tmp_path / "again.exr").channels
+    assert all(np.array_equal(fresh[k], again[k]) for k in fresh)
+
+
+def test_cache_refuses_an_entry_that_declares_too_much_memory(scene_file, tmp_path):
+    """The sizes an entry's archive declares are checked before anything is
+    decompressed: a layer declared larger than the memory limit is refused from its
+    header."""
+    import io
+    import json
+    import zipfile
+
+    from mpib_validate.runtime.layers import cache as C
+    from mpib_validate.runtime.refocus import load_passes
+
+    d, cam = scene_file
+    passes = load_passes(d / "in.exr")
+    folder = tmp_path / "cache"
+    result, reused, entry = C.refocus_cached(passes, cam.blur_parameter, cam.focus_disparity,
+                                             folder)
+    H, W = passes.colour.shape[:2]
+    margin = 0
+    buf = io.BytesIO()
+    header = {"descr": "<f4", "fortran_order": False, "shape": (40000, 40000, 4)}
+    with zipfile.ZipFile(entry, "w") as zf:
+        for name in ("meta", "where0"):
+            b = io.BytesIO()
+            np.save(b, np.array([H, W, margin, 1], np.int64) if name == "meta"
+                    else np.array([0.5, 0, 0, -1.0]))
+            zf.writestr(f"{name}.npy", b.getvalue())
+        np.lib.format.write_array_header_1_0(buf, header)
+        zf.writestr("rgba0.npy", buf.getvalue())  # the header alone: no data follows
+    meta = entry.with_suffix(".json")
+    m = json.loads(meta.read_text())
+    m["sha256"] = C.file_sha256(entry)
+    meta.write_text(json.dumps(m))
+    built, notice = C.load(folder, entry.stem, (H, W), 4)
+    assert built is None and "more than the limit" in notice, notice
+
+
+def test_cli_mpi_cache_entry_that_is_not_a_file_is_left_alone(scene_file, tmp_path):
+    """An entry path that is a folder (or any non-regular file) is neither used nor
+    replaced: the refocus runs, says so in one line, and the folder stays."""
+    d, _ = scene_file
+    cache = tmp_path / "cache"
+    rc, _, err = run("refocus", d / "in.exr", "-o", tmp_path / "fresh.exr", "-q",
+                     "--no-preview", "--mpi-cache", cache)
+    assert rc == 0, err
+    (npz,) = cache.glob("*.npz")
+    npz.unlink()
+    npz.mkdir()
+    rc, stdout, err = run("refocus", d / "in.exr", "-o", tmp_path / "again.exr", "-q",
+                          "--no-preview", "--mpi-cache", cache)
+    assert rc == 0 and "Traceback" not in err, err
+    assert npz.is_dir() and sorted(p.name for p in cache.iterdir()) == sorted(
+        [npz.name, npz.with_suffix(".json").name])
+    assert "not a regular file" in err and "not cached" in err
