@@ -2,7 +2,7 @@
 
 The default run checks it on the pinned bpy 5.0.1; `make test-blender-versions` runs
 this file on 4.2 LTS, 4.5 LTS and the newest 5.x as well. Each test states the fact
-(REFERENCE.md, "Blender versions") that decides which branch the helper takes, so a
+(``docs/camera.md``, "Blender versions") that decides which branch the helper takes, so a
 Blender that changes its API fails here first, with the reason.
 """
 

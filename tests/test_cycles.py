@@ -249,7 +249,7 @@ def test_z_pass_behind_transparent_card_needs_no_russian_roulette(tmp_path):
         cycles.render_exr(bl, tmp_path / f"rr{s}.exr")
         zrr = cycles.read_render(tmp_path / f"rr{s}.exr")[1]
         wrong += int((~np.isclose(zrr, maps["depth"], rtol=DEPTH_TOL, atol=0)).sum())
-    assert wrong > 0, "Russian roulette no longer changes Z: REFERENCE note can be dropped"
+    assert wrong > 0, "Russian roulette no longer changes Z: the note in docs/validation.md (Cycles) can be dropped"
 
 
 def test_z_pass_comes_from_sample_zero(tmp_path):
@@ -390,7 +390,7 @@ def test_defocus_node_radius_formula_and_orientation():
 
 def test_defocus_node_defects_still_present():
     """Each known defect of the node is measured; a failure here means Blender fixed it
-    (update docs/REFERENCE and the baseline discussion)."""
+    (update docs/camera.md, "Blender and Cycles", and the baseline discussion)."""
     d = dn.measure_defects(size=64)
     # CoC extra factor z_f / (z_f - f) = 2 / 1.95: measured by bisection to 1e-3
     assert abs(d["coc_factor"] - d["coc_factor_predicted"]) < 2e-3, d

@@ -1,7 +1,7 @@
 """The official MPIB renderer's computation (``MPIBokehRenderer``), in torch, for the benchmark.
 
 A thin adapter written from the supplement's Eq. 1 and the official code's documented
-behaviour (``shared/REFERENCE.md``, section "The official MPIB renderer"); no source of
+behaviour (``docs/camera.md``, section "The paper's renderer and generator"); no source of
 the official code is copied or vendored. It exists so that ``mpib bench --suite official``
 can time and score the official code path side by side with
 :func:`mpib_validate.runtime.compositor.composite.composite` on the same MPI. torch is an
@@ -22,7 +22,7 @@ which is Eq. 1, ``B = sum_i (c_i a_i * K_i) prod_{j>i} (1 - a_j * K_j) /
 sum_i (a_i * K_i) prod_{j>i} (1 - a_j * K_j)``: the fourth channel carries the
 normaliser (the denominator) with the same transmittance as the colour.
 
-Assumptions (each from REFERENCE.md unless marked *ours*):
+Assumptions (each from ``docs/camera.md`` unless marked *ours*):
 
 - Kernel: ``0.5 + 0.5 tanh(0.25 (r^2 - x^2 - y^2) + 0.5)`` on the ``(2r+1)^2`` integer
   grid, normalised to sum 1 (the project's :func:`kernels.soft_disk`, converted to a

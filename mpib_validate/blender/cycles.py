@@ -8,7 +8,7 @@ projects through the lens centre). Materials are emission (strength 1, the texel
 linear colour) mixed with a Transparent BSDF by the texel's alpha, so Cycles'
 front-to-back transparency compositing is the tracer's "over".
 
-Conventions (see ``shared/REFERENCE.md``):
+Conventions (see ``docs/camera.md``):
 
 - Blender world axes are the project's camera axes: the camera sits at the origin,
   rotated 180 degrees about X, so it looks down world +Z with world -Y up; a world

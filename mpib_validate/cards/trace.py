@@ -16,7 +16,7 @@ with "over" on premultiplied colour::
 A pixel is the average of ``C`` over its samples (linear radiance; nothing behind the
 last card, i.e. black), and its alpha is the average coverage ``1 - T``.
 
-The canonical pixel model (``shared/REFERENCE.md``) is the default: nearest-texel
+The canonical pixel model (``docs/camera.md``) is the default: nearest-texel
 lookups and samples spread over the pixel area (see :mod:`mpib_validate.runtime.samples`).
 The official generator's bilinear lookups at the pixel centre and its fixed
 object order are options, for comparison only: the fixed order is wrong wherever

@@ -1,6 +1,6 @@
 """The thin-lens camera shared by the ray tracer, Mitsuba 3 and Cycles.
 
-Conventions (see ``shared/REFERENCE.md``):
+Conventions (``docs/camera.md`` states them for users):
 
 - Image coordinates ``(x, y)`` are in pixels from the image centre, x to the right
   and y *down* (OpenCV). Pixel column ``j`` covers ``x in [j - W/2, j + 1 - W/2)``.

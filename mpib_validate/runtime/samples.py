@@ -2,7 +2,7 @@
 
 A renderer averages radiance over the unit aperture disk ``mu^2 + nu^2 <= 1`` (the
 lens point is ``(R mu, R nu)``, Eq. 12-13) and, in the canonical pixel model of
-``shared/REFERENCE.md``, over the pixel's square area too. One :class:`LensSamples`
+``docs/camera.md``, over the pixel's square area too. One :class:`LensSamples`
 holds ``S`` joint samples ``(mu, nu, sx, sy)``: an aperture point and a sub-pixel
 position in ``[0, 1)^2`` (0.5 is the pixel centre). Pairing each aperture sample with
 its own sub-pixel position makes the pixel box average free: no extra samples.

@@ -1,6 +1,6 @@
 """Defocus kernels for MPI layers, and the convolution paths that apply them.
 
-Kernel model (the canonical pixel model of ``shared/REFERENCE.md``). A fronto-parallel
+Kernel model (the canonical pixel model of ``docs/camera.md``). A fronto-parallel
 layer at disparity ``d`` seen through aperture point ``(mu, nu)`` is shifted by
 ``rho (mu, nu)`` pixels, ``rho = A (d - d_f)`` (signed). With nearest-texel lookups and
 samples spread over the pixel area, a sub-pixel shift ``delta`` reaches texel
