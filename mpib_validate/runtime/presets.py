@@ -1,7 +1,7 @@
 """Named quality presets: plane placement, tolerance, fast paths and the middle setting.
 
-Each preset's speed and error are measured by ``mpib bench --suite refocus`` (the
-README quotes the latest figures); they are not typed in here.
+Each preset's speed and error are measured by ``mpib bench --suite refocus`` (``docs/benchmark.md``
+quotes the latest figures); they are not typed in here.
 """
 
 from __future__ import annotations
@@ -22,29 +22,24 @@ class Preset:
 
 
 # The split of content between planes is chosen per preset by measurement on both the
-# card suites and the Blender scene suite (mpib bench --suite refocus / blender): the
-# additive interval groups conserve the energy of small out-of-focus highlights and gain
-# on continuous depth (ground planes), but crack slightly where two groups of one surface
-# meet (summing groups within 2 px of blur radius as one slab halves that: +1.1 dB
-# PSNR_ob on varying cards, +0.5 dB on the Blender suite). ``best`` adds the 2x2
-# sub-apertures; with them the additive split measured better than the over split on
-# both worlds.
+# card suites and the Blender scene suite (``mpib bench --suite refocus`` and
+# ``--suite blender``): the additive interval groups conserve the energy of small
+# out-of-focus highlights and gain on continuous depth (ground planes), but crack slightly
+# where two groups of one surface meet; summing groups within 2 px of blur radius as one
+# slab (``slab_px``) halves that. ``best`` adds the 2x2 sub-apertures; with them too the
+# additive split measures better than the over split on both worlds.
 #
 # Every preset composites the slabs in chains (``CompositeSettings.chain_px``, see
 # ``composite._Chain``): slabs of one surface (consecutive slabs of continuous content
 # share a plane, a gap of 0; an empty stretch of disparity between two surfaces is a
-# gap; within 1.5 px of blur radius counts as one surface) are combined with the disjoint over,
-# which closes the cracks at their seams, and each chain is laid on the farther
-# composite renormalised, which fills the holes that the fill leaves behind an occluder
-# (Eq. 1's division gave their share to the occluder's colour too: the far objects
-# against the sky of the ground scene). On the 12 Blender scenes and foci, PSNR_ob of
-# default went 31.99 -> 32.63 dB (ground-near 34.30 -> 38.07, against 36.21 for the
-# Defocus node and 38.45 for best before), draft 32.07 -> 32.63 (ground-near 34.39 ->
-# 34.69: its reduced-resolution blurs keep it below the node there), best 32.73 -> 32.80;
-# on the cards (8 scenes per family, 192x192) default 38.13 / 33.52 -> 38.20 / 34.99 dB
-# (constant / varying), draft 38.18 / 33.59 -> 38.24 / 34.86, best 38.25 / 34.99 ->
-# 38.27 / 35.94. The gap (0.75, 1.5 or 3 px) changed no figure by more than 0.01 dB.
-# Eq. 1's compositing CPU time at 1920x1080 (default): 1.06 times that without chains.
+# gap; within CHAIN_PX of blur radius counts as one surface) are combined with the
+# disjoint over, which closes the cracks at their seams, and each chain is laid on the
+# farther composite renormalised, which fills the holes that the fill leaves behind an
+# occluder (Eq. 1's division would give their share to the occluder's colour: the far
+# objects against the sky of the Blender suite's ground scene). ``tests/test_chain.py``
+# measures both effects against the exact renderer; the presets' PSNR_ob with chains is
+# reported by the two bench suites above, their cost by ``--suite refocus``. The gap
+# (0.75, 1.5 or 3 px) changes no suite figure by more than 0.01 dB.
 CHAIN_PX = 1.5
 PRESETS = {
     "draft": Preset("draft", "1 px plane tolerance, large blurs at reduced resolution",
