@@ -20,6 +20,7 @@ import json
 import math
 import os
 import sys
+import textwrap
 from pathlib import Path
 
 from mpib_validate import __version__
@@ -342,7 +343,62 @@ parameters, paper and physical (blur radius r in pixels, disparity d):
   map d in [0, 1], 0 = far  --depth FILE (d = 1/Z)               r = A |d - d_f|
   --gamma 2.2, else sRGB    EXR: linear                          Eq. 1 on linear colour
 
-example: mpib refocus photo.jpg --disparity disp.png --K 60 --disp-focus 0.81 -o out.jpg
+examples:
+  mpib refocus render.exr -o refocused.exr                  # lens and focus from the EXR header
+  mpib refocus render.exr -o near.exr --fstop 2 --focus-pixel 40,60 --mpi-cache mpi-cache/
+  mpib refocus photo.jpg --disparity disp.png --K 60 --disp-focus 0.81 -o out.jpg
+"""
+
+_MAIN_EPILOG = """\
+examples:
+  mpib generate --seed 3 --family varying --out scenes/s3
+  mpib render scenes/s3 --engine trace -o renders/s3.exr
+  mpib refocus renders/s3.exr -o renders/s3-mpib.exr
+
+Each command has its own --help. Documentation: README.md and docs/ in the repository.
+"""
+
+_GENERATE_EPILOG = """\
+examples:
+  mpib generate --seed 3 --family varying --out scenes/s3
+  mpib generate --seed 3 --family constant --case hair --size 320x240 --out scenes/hair
+"""
+
+_RENDER_EPILOG = """\
+examples:
+  mpib render scenes/s3 --engine trace -o renders/s3.exr       # + renders/s3.png
+  mpib render scenes/s3 -o renders/s3-grid.exr --aperture grid --grid-side 51 --pixel centre
+  mpib render scenes/s3 --engine cycles --spp 256 -o renders/s3-cycles.exr
+"""
+
+_DEMO_EPILOG = """\
+example:
+  mpib demo --out out/demo --size 128
+"""
+
+_BENCH_EPILOG = """\
+suites: %s (default: all)
+
+examples:
+  mpib bench --out out/bench                       # every suite, quick mode
+  mpib bench --suite refocus --out out/bench       # one suite
+  mpib bench --suite official --full               # needs make official (CPU torch)
+"""
+
+_COMPARE_EPILOG = """\
+example:
+  mpib compare renders/s3.exr renders/s3-mpib.exr --mask mask.exr --json
+"""
+
+_DATASET_EPILOG = """\
+examples:
+  mpib dataset --out data --count 1000 --workers 2
+  mpib dataset --out data --count 1000 --scheduler tcp://host:8786    # a Dask cluster
+"""
+
+_BACKENDS_EPILOG = """\
+example:
+  mpib backends
 """
 
 
@@ -666,13 +722,15 @@ def build_parser() -> argparse.ArgumentParser:
     from mpib_validate.runtime.presets import PRESETS
 
     p = _Parser(prog="mpib", description=__doc__.split("\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+                                formatter_class=argparse.RawDescriptionHelpFormatter,
+                                epilog=_MAIN_EPILOG)
     p.add_argument("--version", action="version", version=f"mpib {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     g = sub.add_parser("generate", help="make a seeded random card scene",
                        description="Write a random card scene (scene.json + cards/*.exr). "
-                                   "The same seed gives the same files, byte for byte.")
+                                   "The same seed gives the same files, byte for byte.",
+                       formatter_class=_TableFormatter, epilog=_GENERATE_EPILOG)
     g.add_argument("--seed", type=_COUNT, default=0, help="non-negative integer (default 0)")
     g.add_argument("--family", choices=FAMILIES, default="constant",
                    help="constant: fronto-parallel cards; varying: tilted planes")
@@ -685,7 +743,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     r = sub.add_parser("render", help="render a scene to EXR + PNG",
                        description="Render a card scene. --engine trace is the paper's "
-                                   "image-space thin-lens ray tracer (Eq. 15).")
+                                   "image-space thin-lens ray tracer (Eq. 15).",
+                       formatter_class=_TableFormatter, epilog=_RENDER_EPILOG)
     r.add_argument("scene", help="scene directory or scene.json")
     r.add_argument("-o", "--output", required=True, help="output EXR path (a PNG is written beside it)")
     r.add_argument("--engine", default="trace", choices=["trace", "mitsuba", "cycles"])
@@ -713,7 +772,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     d = sub.add_parser("demo", help="the main job on an embedded default scene",
                        description="Generate the default scenes (both families), render them "
-                                   "and write a short report.")
+                                   "and write a short report.",
+                       formatter_class=_TableFormatter, epilog=_DEMO_EPILOG)
     d.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     d.add_argument("--size", type=_POSITIVE_INT, default=256, help="image side in pixels (default 256)")
     d.add_argument("--spp", type=_POSITIVE_INT, default=1024,
@@ -724,11 +784,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("bench", help="measure speed and error; write a report",
                        description="Run a benchmark suite and write a report folder "
-                                   "(Markdown + JSON).")
+                                   "(Markdown + JSON).",
+                       formatter_class=_TableFormatter)
     b.add_argument("--out", default="out/bench", help="report folder (default out/bench)")
     from mpib_validate.bench import SUITES
 
-    b.add_argument("--suite", choices=["all", *SUITES], default="all")
+    b.epilog = _BENCH_EPILOG % textwrap.fill(", ".join(SUITES), 70, subsequent_indent="  ")
+    b.add_argument("--suite", choices=["all", *SUITES], default="all", metavar="NAME",
+                   help="one suite, or all (the suites are listed below)")
     mode = b.add_mutually_exclusive_group()
     mode.add_argument("--quick", action="store_true",
                       help="small scenes, a few minutes on 2 cores (the default)")
@@ -742,7 +805,8 @@ def build_parser() -> argparse.ArgumentParser:
     c = sub.add_parser("compare", help="PSNR, SSIM, FLIP (and _ob variants) of two EXRs",
                        description="Compare a test image with a reference: PSNR, SSIM and FLIP "
                                    "on [0, 1]-clipped values and on linear HDR values; with "
-                                   "--mask also PSNR_ob and SSIM_ob inside the mask.")
+                                   "--mask also PSNR_ob and SSIM_ob inside the mask.",
+                       formatter_class=_TableFormatter, epilog=_COMPARE_EPILOG)
     c.add_argument("reference", help="reference EXR")
     c.add_argument("test", help="test EXR")
     c.add_argument("--mask", help="mask (EXR channel Y/A/R > 0.5, or a PNG > 127)")
@@ -786,8 +850,8 @@ def build_parser() -> argparse.ArgumentParser:
     photo.add_argument("--refine", choices=["off", "guided", "guided-thin"], default=None,
                        help="move a predicted disparity's edges onto the colour edges before "
                             "the split (layers/refine.py): guided (the default with "
-                            "--disparity), guided-thin (also thin structures; about twice the "
-                            "cost), off (the default with --depth)")
+                            "--disparity), guided-thin (also thin structures; about 1.4 "
+                            "times the cost), off (the default with --depth)")
     photo.add_argument("--official-focus-range", action="store_true",
                        help="as the official renderer's demo (increase_focus_range): subtract "
                             "half a 1/32 bin from every defocus, r = K max(|d - d_f| - 1/64, 0)")
@@ -795,9 +859,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="EXR of the scene rendered without the foreground: used in place of "
                         "the hidden-background fill where its alpha > 0.5")
     g2 = f.add_mutually_exclusive_group()
-    g2.add_argument("--focus-depth", type=float, help="focus distance (scene units)")
-    g2.add_argument("--focus-disparity", type=float, help="focus disparity (1/scene-unit)")
-    g2.add_argument("--focus-pixel", type=_parse_pixel, help="focus on pixel X,Y")
+    g2.add_argument("--focus-depth", type=float, metavar="Z", help="focus distance (scene units)")
+    g2.add_argument("--focus-disparity", type=float, metavar="D",
+                    help="focus disparity (1/scene-unit)")
+    g2.add_argument("--focus-pixel", type=_parse_pixel, metavar="X,Y", help="focus on pixel X,Y")
     g2.add_argument("--disp-focus", type=_FINITE, metavar="D",
                     help="the paper's focus: the normalised disparity in focus, in [0, 1] "
                          "(with --K)")
@@ -846,7 +911,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     ds = sub.add_parser("dataset", help="many generated scenes with their ray-traced references",
                         description="Build a dataset of generated card scenes and their renders "
-                                    "(one folder per seed, written atomically; a rerun resumes).")
+                                    "(one folder per seed, written atomically; a rerun resumes).",
+                        formatter_class=_TableFormatter, epilog=_DATASET_EPILOG)
     ds.add_argument("--out", required=True, help="dataset folder")
     ds.add_argument("--count", type=_POSITIVE_INT, required=True, help="number of samples")
     ds.add_argument("--start", type=_COUNT, default=0, help="first seed (default 0)")
@@ -860,7 +926,8 @@ def build_parser() -> argparse.ArgumentParser:
     ds.set_defaults(func=cmd_dataset)
 
     k = sub.add_parser("backends", help="which compute backends run here",
-                       description="Probe numpy, Dr.Jit LLVM and Dr.Jit CUDA (in subprocesses).")
+                       description="Probe numpy, Dr.Jit LLVM and Dr.Jit CUDA (in subprocesses).",
+                       formatter_class=_TableFormatter, epilog=_BACKENDS_EPILOG)
     k.set_defaults(func=cmd_backends)
     return p
 
