@@ -68,7 +68,7 @@ class MPIB_Settings(bpy.types.PropertyGroup):
                                               "Group (the other objects are one more group)")))
     max_groups: IntProperty(name="Max Groups", default=3, min=2, max=8,
                             description="Largest number of automatic depth groups (each is "
-                                        "one more view layer to render; on the README's "
+                                        "one more view layer to render; on the Blender "
                                         "scene suite 5 groups refocus as well as 3)")
     last_passes: StringProperty(name="Last Passes", subtype="FILE_PATH",
                                 description="EXR with the passes of the last render")
