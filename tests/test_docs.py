@@ -78,6 +78,14 @@ def exists(name: str) -> bool:
     return (ROOT / name).exists() or (ROOT / "docs" / name).exists()
 
 
+def anchors(text: str) -> set[str]:
+    """GitHub's anchors of a page's headings: lower case, punctuation but ``-`` dropped,
+    spaces to ``-`` (code fences skipped)."""
+    text = re.sub(r"```.*?```", "", text, flags=re.S)
+    return {re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-")
+            for h in re.findall(r"^#{1,6} (.+)$", text, re.M)}
+
+
 def missing_paths() -> list[str]:
     bad = []
     for md in markdown_files():
@@ -87,10 +95,14 @@ def missing_paths() -> list[str]:
                 bad.append(f"{md.relative_to(ROOT)} names `{name}`, which does not exist")
         for link in _LINK.findall(text):
             target = link.split("#")[0]
-            if not target or re.match(r"[a-z]+:", target) or _PLACEHOLDER.search(target):
+            if re.match(r"[a-z]+:", target) or _PLACEHOLDER.search(target):
                 continue
-            if not (md.parent / target).exists():
+            page = md.parent / target if target else md
+            if not page.exists():
                 bad.append(f"{md.relative_to(ROOT)} links to {link}, which does not exist")
+            elif "#" in link and page.suffix == ".md" and \
+                    link.split("#", 1)[1] not in anchors(page.read_text(encoding="utf-8")):
+                bad.append(f"{md.relative_to(ROOT)} links to {link}: no such heading there")
     for py in python_files():
         for where, text in docstrings(py):
             for name in named_paths(text):
@@ -148,6 +160,8 @@ def test_the_checks_see_what_they_check():
     assert named_paths(text) == {"docs/camera.md", "mpib_validate/runtime/camera.py",
                                  "docs/x.md", "shared/REFERENCE.md", "REFERENCE.md"}
     assert not exists("shared/REFERENCE.md") and not exists("REFERENCE.md")
+    assert anchors("## Presets (`--preset`)\n```\n# not a heading\n```\n### The camera's K") == {
+        "presets---preset", "the-cameras-k"}
     assert resolves("mpib_validate.runtime.camera.Camera.thin_lens")
     assert not resolves("mpib_validate.runtime.camera.NoSuchThing")
     assert not resolves("mpib_validate.no_such_module")
