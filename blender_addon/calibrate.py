@@ -1,112 +1,56 @@
-"""Focus and aperture from the scene camera (or the panel's overrides)."""
+"""Focus and aperture from the scene camera (or the panel's overrides).
+
+The camera and the render settings are read by one function,
+:func:`mpib_validate.runtime.blender.camera.read_camera`, for every operator; this module
+adds the panel's overrides and fits the camera to the image being refocused (render
+region, pixel aspect)."""
+
+from mpib_validate.runtime.blender.camera import CameraError as CalibrationError  # noqa: F401
 
 
+def camera_request(scene, settings, image_size, frame=None, purpose: str = "refocus") -> dict:
+    """What a refocus of an image of ``image_size`` ``(W, H)`` takes from the scene at
+    ``frame`` (default: as it is now), refused in one line naming the setting
+    (:class:`CalibrationError`) where the refocus cannot model the camera:
 
-def animated_value(id_data, data_path: str, frame, default):
-    """``data_path`` of ``id_data`` at ``frame`` from its keyframes (default if none).
+    - ``camera``: keyword arguments of :func:`mpib_validate.runtime.camera.blender_camera`
+      for the image as refocused (square pixels: see ``stretch``), with the panel's
+      f-stop and focus distance where it overrides the camera's;
+    - ``region``: ``(x0, y0, x1, y1)`` of an uncropped render region in the image (the
+      refocus reads and writes only that box; outside it the render holds nothing), or
+      None;
+    - ``stretch``: ``(mx, my)`` whole-number repeats of each column and row that make the
+      pixels square (Pixel Aspect X:Y = 2:1 gives (2, 1)); the result is averaged back.
 
-    During an animation render Blender evaluates animation on its render copy only, so
-    render handlers see the originals' un-animated values: read the F-curve instead.
-    Works with slotted actions (Blender 4.4+) and plain ones (4.2, 4.3)."""
-    ad = getattr(id_data, "animation_data", None)
-    if frame is None or ad is None or ad.action is None:
-        return default
-    fcurves = None
-    try:
-        from bpy_extras import anim_utils
+    An image of another size than the render's (an EXR from elsewhere) is taken as the
+    whole frame at its own size (``f_px`` scales with it)."""
+    from mpib_validate.runtime.blender.camera import read_camera, refusal, square_pixels
 
-        bag = anim_utils.action_get_channelbag_for_slot(ad.action, ad.action_slot)
-        fcurves = bag.fcurves if bag is not None else None
-    except (ImportError, AttributeError):
-        pass
-    if fcurves is None:
-        fcurves = getattr(ad.action, "fcurves", None)
-    fc = fcurves.find(data_path) if fcurves is not None else None
-    return fc.evaluate(frame) if fc is not None else default
-
-
-class CalibrationError(ValueError):
-    """A camera the refocus cannot model; the message says what to do."""
-
-
-def focus_distance_of(cam_obj, frame=None) -> float:
-    """Planar distance (scene units) the camera focuses at: its focus object's depth
-    along the view axis, else its (possibly animated) focus distance. A focus object's
-    own animation is not followed during an animation render."""
-    dof = cam_obj.data.dof
-    if dof.focus_object is not None:
-        local = cam_obj.matrix_world.inverted() @ dof.focus_object.matrix_world.translation
-        z = -local.z  # Blender cameras look down their local -Z
-        if z <= 0:
-            raise CalibrationError(f"the focus object '{dof.focus_object.name}' is behind the camera")
-        return z
-    return animated_value(cam_obj.data, "dof.focus_distance", frame, dof.focus_distance)
-
-
-def render_size(scene) -> tuple:
-    """``(width, height)`` in pixels that a render of ``scene`` has: the resolution
-    times its percentage, rounded down as Blender does."""
-    r = scene.render
-    return (r.resolution_x * r.resolution_percentage // 100,
-            r.resolution_y * r.resolution_percentage // 100)
-
-
-def _perspective_camera(scene):
-    cam_obj = scene.camera
-    if cam_obj is None or cam_obj.type != "CAMERA":
-        raise CalibrationError("the scene has no camera: set one in Scene properties")
-    if cam_obj.data.type != "PERSP":
-        raise CalibrationError(f"the camera '{cam_obj.name}' is {cam_obj.data.type.lower()}: only "
-                               f"perspective cameras have a thin-lens depth of field")
-    return cam_obj
-
-
-def _lens(cam_obj, width: int, height: int, frame) -> dict:
-    cam = cam_obj.data
-    return {"lens_mm": animated_value(cam, "lens", frame, cam.lens),
-            "sensor_width_mm": cam.sensor_width, "sensor_height_mm": cam.sensor_height,
-            "sensor_fit": cam.sensor_fit,
-            "fstop": animated_value(cam, "dof.aperture_fstop", frame, cam.dof.aperture_fstop),
-            "unit_scale": 1.0, "width": width, "height": height}
-
-
-def blender_lens(scene, width: int, height: int, frame=None) -> dict:
-    """The scene camera as it renders at ``frame``: the fields of
-    :func:`mpib_validate.runtime.camera.blender_camera` and of the header's ``camera.blender``
-    (lens, sensor and fit, f-stop, planar focus depth, ``unit_scale``, size).
-
-    ``unit_scale`` is 1 whatever the scene's Unit Scale: Cycles takes the lens in mm as
-    1e-3 Blender units (its depth of field does not change with the Unit Scale), and
-    the Depth pass is in Blender units. Raises :class:`CalibrationError` with advice."""
-    cam_obj = _perspective_camera(scene)
-    return {**_lens(cam_obj, width, height, frame),
-            "focus_distance": focus_distance_of(cam_obj, frame)}
-
-
-def camera_settings(scene, settings, width: int, height: int, warnings=None, frame=None) -> dict:
-    """Lens values for :func:`mpib_validate.runtime.camera.blender_camera`, from the scene camera
-    (:func:`blender_lens`) and the panel's overrides. Raises :class:`CalibrationError`
-    with advice for the artist; appends advice that does not stop the refocus to
-    ``warnings``."""
-    cam_obj = _perspective_camera(scene)
-    cam = cam_obj.data
-    needs_dof = settings.use_camera_fstop or settings.use_camera_focus
-    if needs_dof and not cam.dof.use_dof and warnings is not None:
-        # Passes are rendered with depth of field off; its settings still hold the lens.
-        warnings.append(f"the camera '{cam_obj.name}' has depth of field off, so its f-stop "
-                        f"(f/{cam.dof.aperture_fstop:g}) and focus settings may be defaults: "
-                        f"set them under Camera > Depth of Field, or untick Camera F-Stop / "
-                        f"Camera Focus and set them here")
-    lens = _lens(cam_obj, width, height, frame)
+    cam = read_camera(scene, frame)
+    problem = refusal(cam, focus=settings.use_camera_focus)
+    if problem:
+        raise CalibrationError(problem)
+    mx, my = square_pixels(cam)
+    W, H = (int(v) for v in image_size)
+    region = None
+    frame_w, frame_h = cam.width, cam.height
+    if cam.region is not None and (W, H) == cam.image_size:
+        if not cam.region.crop:
+            r = cam.region
+            region = (r.x0, r.y0, r.x1, r.y1)
+    elif (W, H) != (cam.width, cam.height):  # not this scene's render: the frame as it is
+        frame_w, frame_h = W, H
+    lens = cam.lens()
+    lens["width"], lens["height"] = frame_w * mx, frame_h * my
     if not settings.use_camera_fstop:
         lens["fstop"] = settings.fstop
-    lens["focus_distance"] = (focus_distance_of(cam_obj, frame) if settings.use_camera_focus
-                              else settings.focus_distance)
-    return lens
+    if not settings.use_camera_focus:
+        lens["focus_distance"] = settings.focus_distance
+    return {"camera": lens, "region": region, "stretch": (mx, my), "frame_size": (frame_w, frame_h)}
 
 
 def camera_sources(settings, pixel=None) -> dict:
-    """Where :func:`camera_settings` (and a focus pixel) took each field from, for the
+    """Where :func:`camera_request` (and a focus pixel) took each field from, for the
     ``from`` record of a saved refocus's header."""
     camera = "Blender camera"
     out = {k: camera for k in ("lens_mm", "sensor_width_mm", "sensor_height_mm", "sensor_fit")}

@@ -41,17 +41,24 @@ def drop_session() -> None:
     State.key = None
 
 
-def session_for(path: str, preset: str):
-    """The kept session if it was made from ``path`` (unchanged on disk) with
-    ``preset``; else a new one (the old one and its MPI are dropped first)."""
-    from mpib_validate.runtime.session import RefocusSession
+def session_for(path: str, preset: str, fit=None):
+    """The kept session if it was made from ``path`` (unchanged on disk) with ``preset``
+    and ``fit`` (a :class:`mpib_validate.runtime.session.FrameFit`: render region, square
+    pixels); else a new one (the old one and its MPI are dropped first)."""
+    from mpib_validate.runtime.refocus import load_passes
+    from mpib_validate.runtime.session import RefocusSession, file_stamps
 
     s = State.session
-    if s is not None and State.key == (path, preset) and s.is_current():
+    key = (path, preset, fit)
+    if s is not None and State.key == key and s.is_current():
         return s
     drop_session()
-    State.session = RefocusSession.from_files(path, preset=preset)
-    State.key = (path, preset)
+    if fit is None or fit.identity:
+        State.session = RefocusSession.from_files(path, preset=preset)
+    else:
+        State.session = RefocusSession(fit.passes(load_passes(path)), preset=preset,
+                                       stamps=file_stamps([path]))
+    State.key = key
     return State.session
 
 
@@ -130,9 +137,11 @@ def _show(scene, rgba, H, W):
     return image
 
 
-def _present(scene, job, H, W) -> bool:
+def _present(scene, job, H, W, back=None) -> bool:
     """Show what ``job`` has made so far (the preview once, then the full result); True
-    when nothing more will come."""
+    when nothing more will come. ``back``: maps an ``H x W`` result onto the render's
+    pixels (render region, square pixels)."""
+    back = back or (lambda img: img)
     settings = scene.mpib
     if job.error is not None:
         settings.last_message = f"error: {job.error}"
@@ -140,7 +149,7 @@ def _present(scene, job, H, W) -> bool:
     if job.cancelled:
         return True
     if job.full is not None:
-        _show(scene, job.full.image, H, W)
+        _show(scene, back(job.full.image), H, W)
         State.last_full_info = i = job.full.info
         settings.last_message = (f"focus pull: d_f = {i['focus_disparity']:.4g}, "
                                  f"{i['composite_seconds']:.2f} s ({i['mpi']} MPI, "
@@ -149,7 +158,7 @@ def _present(scene, job, H, W) -> bool:
     if job.preview is not None and not job.preview_shown:
         job.preview_shown = True
         State.last_preview_shape = job.preview.image.shape[:2]
-        _show(scene, upsample(job.preview.image, H, W), H, W)
+        _show(scene, back(upsample(job.preview.image, H, W)), H, W)
         settings.last_message = (f"focus pull: preview {job.preview.image.shape[1]}x"
                                  f"{job.preview.image.shape[0]}, full resolution next...")
     return False
@@ -161,18 +170,25 @@ def pull(scene, blocking: bool | None = None) -> bool:
     only. Returns False (with the reason in the panel's status) when it cannot run."""
     from mpib_validate.runtime.camera import blender_camera
 
+    from mpib_validate.runtime.io.exr import image_size
+
     settings = scene.mpib
     try:
         request = operators.prepare(scene, settings.last_passes, NAME, save=None)
-        session = session_for(request["path"], request["preset"])
+        fit = operators.frame_fit(request)
+        session = session_for(request["path"], request["preset"], fit)
         cam = blender_camera(**request["camera"])
         d_f = cam.focus_disparity
+        shape = tuple(image_size(request["path"]))[::-1]
         if request["pixel"] is not None:
-            d_f = session.focus_at_pixel(*request["pixel"])
+            d_f = session.focus_at_pixel(*fit.pixel(*request["pixel"], shape))
     except operators._errors() as exc:
         settings.last_message = f"error: {exc}"
         return False
     H, W = session.passes.depth.shape
+
+    def back(img):
+        return fit.image(img, shape)
     if State.job is not None:
         State.job.cancel()
     job = FocusPullJob(session, d_f, cam.blur_parameter)
@@ -181,9 +197,9 @@ def pull(scene, blocking: bool | None = None) -> bool:
     if blocking:
         State.job = None
         full, job.full = job.run().full, None
-        _present(scene, job, H, W)  # the preview, as the timer would show it first
+        _present(scene, job, H, W, back)  # the preview, as the timer would show it first
         job.full = full
-        _present(scene, job, H, W)
+        _present(scene, job, H, W, back)
         return job.error is None
     State.job = job.start()
     scene_name = scene.name
@@ -192,7 +208,7 @@ def pull(scene, blocking: bool | None = None) -> bool:
         sc = bpy.data.scenes.get(scene_name)
         if State.job is not job or sc is None:
             return None  # superseded, or the scene is gone
-        if _present(sc, job, H, W):  # the full result (or an error) is shown: done
+        if _present(sc, job, H, W, back):  # the full result (or an error) is shown: done
             State.job = None
             return None
         return 0.03

@@ -27,10 +27,10 @@ def save_render_passes(scene) -> str:
     old = (getattr(s, "media_type", None), s.file_format, s.color_depth)
     path = passes_path(scene)
     try:
-        from mpib_validate.runtime.blender.compat import set_multilayer_exr
+        from mpib_validate.runtime.blender.compat import save_render, set_multilayer_exr
 
         set_multilayer_exr(s, color_depth="32")  # media_type on 5.x, file_format on 4.x
-        img.save_render(path, scene=scene)
+        save_render(img, path, scene)  # also with non-square pixels
     finally:
         if old[0] is not None:
             s.media_type = old[0]
@@ -48,21 +48,26 @@ def stamp_camera(scene) -> str:
     this render, so that ``mpib refocus`` needs no lens options. The artist's note is
     kept in front of it and the settings are restored after the render
     (:func:`restore_note`). Returns what was not done and why ("" when done)."""
+    from mpib_validate.runtime.blender.camera import CameraError, read_camera
     from mpib_validate.runtime.io.camera_header import stamp_note
-
-    from . import calibrate
 
     r = scene.render
     if r.use_stamp:  # Burn Into Image would draw the note into the pixels
         return ("the camera is not recorded in the render's metadata while Burn Into Image "
                 "is on (Output > Metadata)")
-    try:
-        w, h = calibrate.render_size(scene)
-        lens = calibrate.blender_lens(scene, w, h, frame=scene.frame_current)
-    except calibrate.CalibrationError as exc:
+    try:  # the frame being rendered (an animation render leaves the scene at its first)
+        cam = read_camera(scene, frame=scene.frame_current)
+    except CameraError as exc:
         return f"the camera is not recorded in the render's metadata: {exc}"
+    if cam.type != "PERSP":
+        return (f"the camera is not recorded in the render's metadata: the camera "
+                f"'{cam.name}' is not a perspective camera")
+    lens = cam.lens()
     own = r.stamp_note_text if r.use_stamp_note else ""
-    text = stamp_note(lens, own)
+    try:
+        text = stamp_note(lens, own)
+    except ValueError as exc:  # e.g. a focus at depth 0
+        return f"the camera is not recorded in the render's metadata: {exc}"
     if text is None:
         return ("the camera is not recorded in the render's metadata: the Metadata note is "
                 "too long (Blender keeps 511 bytes)")

@@ -9,7 +9,6 @@ and the drivers from the scene camera.
 """
 
 import os
-from types import SimpleNamespace
 
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty
@@ -30,16 +29,26 @@ FILL_ITEMS = (
 )
 
 
-def _lens_at(scene, frame):
-    """Camera settings (as for mpib_validate.runtime.camera.blender_camera) at ``frame``."""
-    r = scene.render
-    W = int(r.resolution_x * r.resolution_percentage / 100)
-    H = int(r.resolution_y * r.resolution_percentage / 100)
-    use_camera = SimpleNamespace(use_camera_focus=True, use_camera_fstop=True)
-    return calibrate.camera_settings(scene, use_camera, W, H, frame=frame)
+def scene_cameras(scene):
+    """The scene camera (:func:`mpib_validate.runtime.blender.camera.read_camera`) at the
+    frames of the animation (at most :data:`FRAME_SAMPLES`, evenly spread), and now.
+    Every frame is evaluated as Blender renders it (parents, constraints, drivers); the
+    current frame is set back afterwards."""
+    from mpib_validate.runtime.blender.camera import read_camera
+
+    now = scene.frame_current
+    try:
+        frames = [read_camera(scene, f) for f in _frames(scene)]
+    finally:
+        scene.frame_set(now)
+    return frames, read_camera(scene)
 
 
-def _frames(scene, limit=500):
+#: Most frames :func:`scene_cameras` evaluates (each is a whole scene evaluation).
+FRAME_SAMPLES = 100
+
+
+def _frames(scene, limit=FRAME_SAMPLES):
     f0, f1 = scene.frame_start, scene.frame_end
     step = max(1, (f1 - f0 + 1) // limit)
     return range(f0, f1 + 1, step)
@@ -97,10 +106,24 @@ class MPIB_OT_add_refocus_node(bpy.types.Operator):
         if self.blur == "CONVOLVE" and legacy:
             self.report({"ERROR"}, "Convolve needs Blender 5.0 or later; choose Bokeh Blur")
             return {"CANCELLED"}
+        from mpib_validate.runtime.blender.camera import refusal
+
         try:
-            cams = [blender_camera(**_lens_at(scene, f)) for f in _frames(scene)]
-            now = blender_camera(**_lens_at(scene, scene.frame_current))
+            frames, current = scene_cameras(scene)
+            for c in (current, *frames):
+                problem = refusal(c, dof=False)
+                if problem:
+                    raise calibrate.CalibrationError(problem)
+            if current.pixel_aspect != 1.0:
+                raise calibrate.CalibrationError(
+                    f"the MPIB Refocus node blurs with round kernels, but Output > Format > "
+                    f"Pixel Aspect X:Y is {current.pixel_aspect:.4g}:1: set them equal, or "
+                    f"use Refocus Last Render (it refocuses non-square pixels)")
+            cams = [blender_camera(**c.lens()) for c in frames]
+            now = blender_camera(**current.lens())
         except (calibrate.CalibrationError, ValueError) as exc:
+            if hasattr(scene, "mpib"):
+                scene.mpib.last_message = f"error: {exc}"
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         A = max(c.blur_parameter for c in cams)  # the widest aperture of the animation
@@ -131,7 +154,8 @@ class MPIB_OT_add_refocus_node(bpy.types.Operator):
         node = tree.nodes.get(ng.GROUP_NAME)
         group = node.node_tree if node is not None and ng.spec_of(node.node_tree) else None
         group = ng.build_group(graph, group=group)
-        node = ng.install(scene, group)
+        wiring = []
+        node = ng.install(scene, group, changes=wiring)
         scene.render.use_compositing = True
         if self.drivers:
             ng.add_camera_drivers(node, scene)
@@ -140,6 +164,8 @@ class MPIB_OT_add_refocus_node(bpy.types.Operator):
         msg = (f"MPIB Refocus node: {len(d)} slices from {source}, tolerance {tol:.2g} px, "
                f"fill {self.fill.lower()}, {n_conv + n_bokeh} blurs ({n_conv} Convolve, "
                f"{n_bokeh} Bokeh Blur)")
+        if wiring:
+            msg += "; " + "; ".join(wiring)
         if legacy and blur == "bokeh":
             side = max(now.width, now.height)
             if r_max > 0.1 * side:

@@ -67,20 +67,18 @@ def _output_path(scene, source: str) -> str:
 
 def prepare(context_or_scene, path: str, name: str, frame=None, save=None) -> dict:
     """Everything the refocus needs from Blender, read on the main thread: the camera
-    calibration (at ``frame``, default the current one), the panel's settings and where
-    to save (``save``: a path, or ``None`` for the panel's choice). Raises one of
-    :func:`_errors`."""
+    (:func:`calibrate.camera_request`, at ``frame``, default the current one), the
+    panel's settings and where to save (``save``: a path, or ``None`` for the panel's
+    choice). Raises one of :func:`_errors`, naming the setting to change."""
     from mpib_validate.runtime.io.atomic import refuse_overwrite
-    from mpib_validate.runtime.layers.passes import PassError
     from mpib_validate.runtime.io.exr import image_size
+    from mpib_validate.runtime.layers.passes import PassError
 
     scene = getattr(context_or_scene, "scene", context_or_scene)
     settings = scene.mpib
     if not path or not os.path.exists(path):
         raise PassError(f"'{path}' does not exist")
-    W, H = image_size(path)
-    warnings = []
-    cam_kwargs = calibrate.camera_settings(scene, settings, W, H, warnings, frame)
+    cam = calibrate.camera_request(scene, settings, image_size(path), frame)
     pixel = None
     if not settings.use_camera_focus and settings.focus_mode == "PIXEL":
         pixel = tuple(settings.focus_pixel)
@@ -91,10 +89,21 @@ def prepare(context_or_scene, path: str, name: str, frame=None, save=None) -> di
         refuse_overwrite(out, [path])
     from mpib_validate.runtime.blender.layers import artist_layer
 
-    return {"path": path, "name": name, "camera": cam_kwargs, "pixel": pixel,
+    return {"path": path, "name": name, "camera": cam["camera"], "pixel": pixel,
+            "fit": {"region": cam["region"], "stretch": cam["stretch"]},
             "view_layer": artist_layer(scene).name,
             "camera_from": calibrate.camera_sources(settings, pixel),
-            "preset": settings.preset, "save": out, "warnings": warnings}
+            "preset": settings.preset, "save": out, "warnings": []}
+
+
+def frame_fit(request: dict):
+    """The request's :class:`mpib_validate.runtime.session.FrameFit` (render region,
+    square pixels)."""
+    from mpib_validate.runtime.session import FrameFit
+
+    fit = request.get("fit") or {}
+    region = fit.get("region")
+    return FrameFit(None if region is None else tuple(region), tuple(fit.get("stretch", (1, 1))))
 
 
 def compute(request: dict, progress=None):
@@ -102,18 +111,28 @@ def compute(request: dict, progress=None):
     ``progress(fraction)`` may raise ``mpib_validate.runtime.refocus.Cancelled`` to stop; nothing
     is written then. Returns the :class:`mpib_validate.runtime.refocus.RefocusResult`."""
     from mpib_validate.runtime.camera import blender_camera
+    from mpib_validate.runtime.layers.passes import PassError
     from mpib_validate.runtime.refocus import focus_from_pixel, refocus, write_result
 
     report = progress if progress is not None else (lambda fraction: None)
-    passes = load_render_passes(request["path"], request.get("view_layer"))
+    full = load_render_passes(request["path"], request.get("view_layer"))
+    fit = frame_fit(request)
+    passes = fit.passes(full)
     report(0.05)
     cam = blender_camera(**request["camera"])
     d_f = cam.focus_disparity
     if request["pixel"] is not None:
-        d_f = focus_from_pixel(passes, *request["pixel"])
+        try:
+            x, y = fit.pixel(*request["pixel"], full.depth.shape)
+        except ValueError as exc:
+            raise PassError(str(exc)) from None
+        d_f = focus_from_pixel(passes, x, y)
     result = refocus(passes, cam.blur_parameter, d_f, request["preset"],
                      progress=lambda f: report(0.05 + 0.9 * f))
+    result.image = fit.image(result.image, full.depth.shape)
     result.info["camera"] = saved_camera(cam, d_f, request)
+    if not fit.identity:
+        result.info["frame_fit"] = {"region": fit.region, "stretch": list(fit.stretch)}
     if request["save"]:
         write_result(request["save"], result, preview=False)
         result.info["saved"] = request["save"]
@@ -403,6 +422,13 @@ def refocus_frame_file(scene, frame_path: str) -> None:
     if not frame_path.lower().endswith(".exr"):
         settings.last_message = ("error: Refocus Animation needs OpenEXR MultiLayer output "
                                  "with the Depth pass")
+        return
+    if not os.path.exists(frame_path):
+        r = scene.render
+        why = ("Blender cannot write a multilayer EXR with non-square pixels: set Output > "
+               "Format > Pixel Aspect X and Y equal" if r.pixel_aspect_x != r.pixel_aspect_y
+               else "the frame was not written")
+        settings.last_message = f"error: frame {scene.frame_current}: {why}"
         return
     stem = os.path.splitext(os.path.basename(frame_path))[0]
     out = os.path.join(os.path.dirname(frame_path), f"{stem}_refocused.exr")

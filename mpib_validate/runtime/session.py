@@ -43,6 +43,7 @@ import math
 import os
 import threading
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -111,18 +112,12 @@ def downsample_mpi(mpi: MPI, s: int) -> MPI:
     return out
 
 
-def subsample_passes(passes: Passes, s: int) -> Passes:
-    """The passes at ``1/s`` resolution: the pixel at the centre of each ``s x s`` block
-    (colour, depth and film alpha of one pixel each: averaging depth across an edge would
-    invent surfaces in between), the frame first continued by edge replication to a
-    multiple of ``s``, so the result is ``ceil(H/s) x ceil(W/s)`` as :func:`downsample_mpi`
-    gives."""
+def take_passes(passes: Passes, rows, cols) -> Passes:
+    """The passes at the pixels ``rows x cols`` (index arrays into the frame, in order;
+    repeats allowed): colour, depth, film alpha, disparity and every depth group alike."""
     from dataclasses import replace
 
-    H, W = passes.depth.shape
-    Hs, Ws = -(-H // s), -(-W // s)
-    rows = np.minimum(np.arange(Hs) * s + s // 2, H - 1)
-    cols = np.minimum(np.arange(Ws) * s + s // 2, W - 1)
+    rows, cols = np.asarray(rows), np.asarray(cols)
 
     def pick(a):
         return None if a is None else np.ascontiguousarray(a[rows][:, cols])
@@ -133,6 +128,83 @@ def subsample_passes(passes: Passes, s: int) -> Passes:
     return replace(passes, colour=pick(passes.colour), depth=pick(passes.depth),
                    alpha=pick(passes.alpha), groups=groups, notices=[],
                    disparity=pick(passes.disparity))
+
+
+def subsample_passes(passes: Passes, s: int) -> Passes:
+    """The passes at ``1/s`` resolution: the pixel at the centre of each ``s x s`` block
+    (colour, depth and film alpha of one pixel each: averaging depth across an edge would
+    invent surfaces in between), the frame first continued by edge replication to a
+    multiple of ``s``, so the result is ``ceil(H/s) x ceil(W/s)`` as :func:`downsample_mpi`
+    gives."""
+    H, W = passes.depth.shape
+    Hs, Ws = -(-H // s), -(-W // s)
+    rows = np.minimum(np.arange(Hs) * s + s // 2, H - 1)
+    cols = np.minimum(np.arange(Ws) * s + s // 2, W - 1)
+    return take_passes(passes, rows, cols)
+
+
+@dataclass(frozen=True)
+class FrameFit:
+    """How a render's pixels map onto the image the refocus works on, and back.
+
+    ``region``: ``(x0, y0, x1, y1)``, the box of the frame that holds the render (an
+    uncropped render region: nothing was rendered outside it), or None for the whole
+    frame. ``stretch``: ``(mx, my)``, each column repeated ``mx`` times and each row
+    ``my`` times so that non-square pixels (Blender's Pixel Aspect X:Y = mx:my) become
+    square; the refocused image is averaged back over each ``mx x my`` block (the blur is
+    linear, so this is the render's pixels blurred by the stretched, anisotropic
+    kernel)."""
+
+    region: tuple | None = None
+    stretch: tuple = (1, 1)
+
+    @property
+    def identity(self) -> bool:
+        return self.region is None and tuple(self.stretch) == (1, 1)
+
+    def passes(self, passes: Passes) -> Passes:
+        """The passes the refocus works on: the region, then the square pixels."""
+        if self.identity:
+            return passes
+        H, W = passes.depth.shape
+        x0, y0, x1, y1 = self.region or (0, 0, W, H)
+        mx, my = self.stretch
+        return take_passes(passes, np.repeat(np.arange(y0, y1), my),
+                           np.repeat(np.arange(x0, x1), mx))
+
+    def pixel(self, x: int, y: int, shape) -> tuple[int, int]:
+        """A pixel of the render (from the top left) on the refocus's image; raises
+        ``ValueError`` naming the region when it lies outside it."""
+        H, W = shape
+        x0, y0, x1, y1 = self.region or (0, 0, W, H)
+        if not (x0 <= x < x1 and y0 <= y < y1):
+            raise ValueError(f"the focus pixel ({x}, {y}) lies outside the render region "
+                             f"(columns {x0}-{x1 - 1}, rows {y0}-{y1 - 1})")
+        mx, my = self.stretch
+        return (x - x0) * mx + mx // 2, (y - y0) * my + my // 2
+
+    def image(self, rgba: np.ndarray, shape) -> np.ndarray:
+        """The refocused ``(h, w, 4)`` straight RGBA back on the render's ``shape`` ``(H,
+        W)``: each ``mx x my`` block averaged (premultiplied), placed in the region; 0
+        (transparent) outside it, as the render is there."""
+        if self.identity:
+            return rgba
+        mx, my = self.stretch
+        img = np.asarray(rgba, np.float32)
+        if (mx, my) != (1, 1):
+            h, w = img.shape[0] // my, img.shape[1] // mx
+            pre = np.concatenate([img[..., :3] * img[..., 3:4], img[..., 3:4]], axis=-1)
+            pre = pre.reshape(h, my, w, mx, 4).mean(axis=(1, 3))
+            img = np.zeros_like(pre)
+            a = pre[..., 3:4]
+            np.divide(pre[..., :3], a, out=img[..., :3], where=a > 0)
+            img[..., 3:4] = a
+        if self.region is None:
+            return img
+        x0, y0, x1, y1 = self.region
+        out = np.zeros((*shape, 4), np.float32)
+        out[y0:y1, x0:x1] = img
+        return out
 
 
 def file_stamps(paths) -> tuple:
@@ -323,5 +395,6 @@ class RefocusSession:
         return focus_from_pixel(self.passes, x, y, self.far_limit)
 
 
-__all__ = ["RefocusSession", "downsample_mpi", "subsample_passes", "passes_digest",
+__all__ = ["RefocusSession", "downsample_mpi", "subsample_passes", "take_passes", "FrameFit",
+           "passes_digest",
            "file_stamps", "mpi_bytes", "preview_factor", "REUSE_DOWN_TO"]

@@ -24,13 +24,16 @@ node options           RNA properties (``node.filter_type``)       many became i
                                                                    take the item's UI name: ``'Gaussian'``)
 Cycles sample subset   4.2: ``sample_offset`` skips samples;       ``use_sample_subset``, ``sample_offset``,
                        4.5 as 5.x                                  ``sample_subset_length``
+multilayer EXR of      (not checked)                               5.0.1 refuses to write it ("Conflicting
+non-square pixels                                                  attributes ... 'pixelAspectRatio'"):
+                                                                   :func:`save_render` writes it as 1:1
 =====================  ==========================================  ==========================================
 
 The names here are used by other modules (``nodegroup.py`` builds the MPIB node
 group with them): :func:`compositor_tree`, :func:`tree_output`,
 :func:`set_multilayer_exr`, :data:`MATH`, :data:`MAP_RANGE`, :data:`MIX`,
 :data:`VALUE`, :func:`node_idname`, :func:`new_node`, :func:`mix_inputs`, :func:`mix_output`,
-:func:`set_option`, plus :func:`set_sample_subset` (Cycles),
+:func:`set_option`, plus :func:`set_sample_subset` (Cycles), :func:`save_render`,
 :func:`has_compositing_node_group`,
 :func:`has_compositor_effects` and :func:`version`.
 
@@ -166,6 +169,32 @@ def set_multilayer_exr(image_settings, color_depth: str | None = "32",
         image_settings.color_depth = color_depth
     if codec is not None:
         image_settings.exr_codec = codec
+
+
+def save_render(image, path: str, scene) -> None:
+    """``image.save_render(path, scene=scene)`` (e.g. the Render Result as the scene's
+    output format).
+
+    Blender 5.0.1 writes each pass of a multilayer EXR as its own part with the scene's
+    pixel aspect ratio and then refuses its own file when the ratio is not 1 ("Conflicting
+    attributes found for header :: ViewLayer.Depth 'pixelAspectRatio'", reported as
+    "Error writing render result, Success"). The pixels are the same whatever the
+    header's ratio, so where the write fails with non-square pixels it is done again
+    with Pixel Aspect X and Y set to 1 for the write (the file then says 1:1; the
+    scene's ratio is given back)."""
+    try:
+        image.save_render(path, scene=scene)
+        return
+    except RuntimeError:
+        r = scene.render
+        if r.pixel_aspect_x == r.pixel_aspect_y:
+            raise
+    old = (r.pixel_aspect_x, r.pixel_aspect_y)
+    r.pixel_aspect_x = r.pixel_aspect_y = 1.0
+    try:
+        image.save_render(path, scene=scene)
+    finally:
+        r.pixel_aspect_x, r.pixel_aspect_y = old
 
 
 def set_sample_subset(cycles_settings, offset: int, length: int) -> None:

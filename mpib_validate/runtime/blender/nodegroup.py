@@ -61,7 +61,10 @@ animate focus and aperture):
 5. The blurred layers of a slab summed (Math nodes), then Eq. 1 over the slabs far to
    near with Alpha Over (premultiplied): ``acc <- acc (1 - a_s) + (c_s, a_s)`` with
    ``(c_s, a_s)`` the slab's sum; output colour ``acc_rgb / acc_a`` (clamped >= 0),
-   alpha 1; the second output "Alpha" is ``acc_a``, the coverage of Eq. 1.
+   alpha 1; the second output "Alpha" is ``acc_a``, the coverage of Eq. 1. With the
+   input "Film Transparent" at 1 (a render whose world is transparent: alpha 0 at
+   infinity) the output is ``(acc_rgb, acc_a)`` itself, premultiplied, as Cycles' depth of
+   field gives it (the normalisation would divide by a coverage that is ~0 there).
 
 Slices are placed from the depth of the last render (:func:`place_slices`): the
 adaptive planes of :func:`mpib_validate.runtime.layers.mpi.adaptive_planes` (only where content is,
@@ -155,10 +158,16 @@ INPUTS = (
      "Sensor size across the image width for the camera's sensor fit, mm"),
     ("Resolution X", "NodeSocketFloat", 1920.0, "Rendered image width, pixels"),
     ("Resolution Y", "NodeSocketFloat", 1080.0, "Rendered image height, pixels"),
-    ("Unit Scale", "NodeSocketFloat", 1.0, "Metres per scene unit"),
+    ("Unit Scale", "NodeSocketFloat", 1.0,
+     "Metres per unit of depth as the lens sees it: 1 for Blender renders (Cycles' depth "
+     "of field ignores the scene's Unit Scale)"),
+    ("Film Transparent", "NodeSocketFloat", 0.0,
+     "1: the render's film is transparent; the output keeps the refocused coverage as "
+     "alpha (premultiplied). 0: opaque output, colour normalised by the coverage"),
 )
 OUTPUTS = (
-    ("Image", "NodeSocketColor", "Refocused image (normalised Eq. 1, alpha 1)"),
+    ("Image", "NodeSocketColor", "Refocused image (normalised Eq. 1, alpha 1; with Film "
+     "Transparent the premultiplied Eq. 1 and its coverage)"),
     ("Alpha", "NodeSocketFloat", "Coverage of Eq. 1 (acc_a)"),
 )
 
@@ -698,13 +707,21 @@ def describe(spec: GroupSpec) -> Graph:
         acc = slab_sum if acc is None else g.add(f"acc{s}", "over", acc, slab_sum)
     g.add("acc", "separate", acc)
     a_acc = Ref("acc", 3)
+    # opaque film: normalised colour, alpha 1; transparent film (t = 1): the premultiplied
+    # colour and coverage as they are, den = 1 + (1 - t) (max(acc_a, floor) - 1)
+    t = GroupIn("Film Transparent")
     den = g.math("norm", "MAXIMUM", a_acc, NORM_FLOOR)
+    keep = g.math("norm.opaque", "SUBTRACT", 1.0, t)
+    den = g.math("norm.film", "ADD", g.math("norm.excess", "MULTIPLY", keep,
+                                            g.math("norm-1", "SUBTRACT", den, 1.0)), 1.0)
     rgb = []
     for k, c in enumerate("rgb"):
         q = g.math(f"out.{c}/a", "DIVIDE", Ref("acc", k), den)
         rgb.append(g.math(f"out.{c}", "MAXIMUM", q, 0.0))
-    out = g.add("out", "combine", *rgb, 1.0)
     cov = g.math("coverage", "MAXIMUM", a_acc, 0.0, clamp=True)
+    alpha = g.math("out.a", "ADD", g.math("out.a-1", "MULTIPLY", t,
+                                          g.math("coverage-1", "SUBTRACT", cov, 1.0)), 1.0)
+    out = g.add("out", "combine", *rgb, alpha)
     return Graph(spec, tuple(g.ops), (("Image", out), ("Alpha", cov)))
 
 
@@ -1258,14 +1275,23 @@ def spec_of(group) -> GroupSpec | None:
                      int(d.get("density_px", 0)))
 
 
-def install(scene, group, node_name: str = GROUP_NAME):
-    """Wire the group between Render Layers (Image, Depth) and the compositor output of
-    ``scene`` (created as needed), enabling the Depth pass. Reuses a group node named
-    ``node_name`` if there is one. Returns the group node."""
+def install(scene, group, node_name: str = GROUP_NAME, changes: list | None = None):
+    """Put the group where the render enters the compositor tree of ``scene`` (created as
+    needed), enabling the Depth pass. Reuses a group node named ``node_name`` if there is
+    one. Returns the group node; appends to ``changes`` one phrase per change made to
+    the artist's links.
+
+    The node takes Render Layers' Image and Depth. Every socket that took Render Layers'
+    Image (e.g. the artist's Glare) takes the node's Image instead, and every one that
+    took its Alpha takes the node's Alpha (the refocused coverage), so the artist's
+    chain is kept whole after the node. Where nothing took the render's Image, the node
+    feeds the compositor output, unless something else already does: then that link is
+    kept and the node is left for the artist to connect (said in ``changes``)."""
     import bpy
 
     legacy = is_legacy_api(bpy)
     tree = compositor_tree(scene, create=True)
+    changes = [] if changes is None else changes
     for vl in scene.view_layers:
         vl.use_pass_z = True
     rl = next((n for n in tree.nodes if n.bl_idname == "CompositorNodeRLayers"), None)
@@ -1281,10 +1307,37 @@ def install(scene, group, node_name: str = GROUP_NAME):
     node.node_tree = group
     node.label = group.name
     node.width = 220
+
+    def takers(socket_name):
+        src = rl.outputs.get(socket_name)
+        return [] if src is None else [link.to_socket for link in tree.links
+                                       if link.from_socket == src and link.to_node != node]
+
+    def named(sockets):
+        return ", ".join(f"'{s.node.name}' ({s.name})" for s in sockets)
+
+    image_takers, alpha_takers = takers("Image"), takers("Alpha")
     tree.links.new(rl.outputs["Image"], node.inputs["Image"])
     tree.links.new(rl.outputs["Depth"], node.inputs["Depth"])
-    tree.links.new(node.outputs["Image"], out.inputs[0])
-    out.location = (node.location[0] + 300, node.location[1])
+    for s in image_takers:
+        tree.links.new(node.outputs["Image"], s)
+    for s in alpha_takers:
+        tree.links.new(node.outputs["Alpha"], s)
+    if image_takers:
+        changes.append(f"inserted between Render Layers and {named(image_takers)}")
+    if alpha_takers:
+        changes.append(f"{named(alpha_takers)} now take(s) the node's Alpha instead of "
+                       f"Render Layers' Alpha")
+    if not image_takers and not node.outputs["Image"].is_linked:
+        target = out.inputs[0]
+        if target.is_linked:
+            changes.append(f"the compositor output keeps its input from "
+                           f"'{target.links[0].from_node.name}'; connect the node's Image "
+                           f"where the render should enter your tree")
+        else:
+            tree.links.new(node.outputs["Image"], target)
+            out.location = (node.location[0] + 300, node.location[1])
+            changes.append("connected to the compositor output")
     return node
 
 
@@ -1386,7 +1439,7 @@ def _driver(socket, expression: str, variables) -> None:
 
 #: Inputs the camera drivers set.
 DRIVEN_INPUTS = ("Focus Distance", "F-Stop", "Focal Length", "Sensor Width", "Resolution X",
-                 "Resolution Y", "Unit Scale")
+                 "Resolution Y", "Film Transparent")
 
 
 def add_camera_drivers(node, scene, cam_obj=None) -> list[str]:
@@ -1399,8 +1452,11 @@ def add_camera_drivers(node, scene, cam_obj=None) -> list[str]:
     - F-Stop, Focal Length: ``dof.aperture_fstop``, ``lens``;
     - Sensor Width: the sensor size across the image width for the fit (HORIZONTAL:
       the width; VERTICAL: ``height * W / H``; AUTO: ``width * W / max(W, H)``);
-    - Resolution X/Y: ``floor(resolution * percentage / 100)``; Unit Scale.
+    - Resolution X/Y: ``floor(resolution * percentage / 100)``;
+    - Film Transparent: ``render.film_transparent``.
 
+    Unit Scale is set to 1 and not driven: Cycles takes the lens in mm as 1e-3 Blender
+    units whatever the scene's Unit Scale (its depth of field does not change with it).
     Returns the names of the driven inputs. Deleting a driver leaves its input free."""
     cam_obj = cam_obj or scene.camera
     if cam_obj is None or cam_obj.type != "CAMERA":
@@ -1430,8 +1486,9 @@ def add_camera_drivers(node, scene, cam_obj=None) -> list[str]:
              ("fit", "CAMERA", cam, "sensor_fit")] + res)
     _driver(node.inputs["Resolution X"], "floor(rx * pct / 100)", res[:1] + pct)
     _driver(node.inputs["Resolution Y"], "floor(ry * pct / 100)", res[1:] + pct)
-    _driver(node.inputs["Unit Scale"], "u if u > 0 else 1",
-            [("u", "SCENE", scene, "unit_settings.scale_length")])
+    node.inputs["Unit Scale"].driver_remove("default_value")
+    node.inputs["Unit Scale"].default_value = 1.0
+    _driver(node.inputs["Film Transparent"], "t", [("t", "SCENE", scene, "render.film_transparent")])
     return list(DRIVEN_INPUTS)
 
 

@@ -1,0 +1,210 @@
+"""The scene camera as Cycles renders it, read once for every part of the extension.
+
+:func:`read_camera` is the one place where the add-on's operators (Refocus Last Render,
+Refocus EXR File, the focus pull, Refocus Animation, the render stamp) and the
+compositor node's operator read the camera and the render settings that fix the blur:
+
+- the lens (focal length, sensor and fit, f-stop) and the focus: the focus object's
+  planar depth along the camera's view axis, else the focus distance; all as evaluated
+  at the frame (animation, drivers, parents and constraints). During an animation
+  render Blender evaluates the frame on its render copy only and the scene's own
+  objects keep the first frame's state, so a read at a frame other than the one the
+  scene was last evaluated at sets the frame first (``scene.frame_set``);
+- the full frame (resolution times percentage, rounded down as Blender does), which
+  sets the focal length in pixels ``f_px = lens / sensor * W`` also when the render is
+  a render region (:class:`RenderRegion`: cropped, the written image is the region
+  only; uncropped, the frame with nothing outside the region);
+- the pixel aspect ratio, the camera type, whether the camera's own depth of field is
+  on, and the film's transparency.
+
+Cycles takes the lens in mm as 1e-3 Blender units whatever the scene's Unit Scale (its
+depth of field does not change with ``unit_settings.scale_length``), so the lens
+carries ``unit_scale`` 1 and the scene's Unit Scale is not used.
+
+:func:`refusal` says, in one line naming the setting, what the refocus cannot model.
+``bpy`` is imported inside the functions only, so the package imports without it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+class CameraError(ValueError):
+    """A camera or render setting the refocus cannot model; the message names it."""
+
+
+@dataclass(frozen=True)
+class RenderRegion:
+    """A render region (Output > Format > Render Region) in pixels of the full frame:
+    columns ``[x0, x1)`` and rows ``[y0, y1)`` counted from the top left. ``crop``:
+    Crop to Render Region (the written image is the region only)."""
+
+    x0: int
+    y0: int
+    x1: int
+    y1: int
+    crop: bool
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return self.x1 - self.x0, self.y1 - self.y0
+
+
+@dataclass(frozen=True)
+class BlenderCamera:
+    """The scene camera and the render settings that set the blur, at one frame."""
+
+    name: str
+    type: str  # "PERSP", "ORTHO" or "PANO"
+    lens_mm: float
+    sensor_width_mm: float
+    sensor_height_mm: float
+    sensor_fit: str
+    fstop: float
+    focus_distance: float  # planar depth in focus, scene units (inf: focus at infinity)
+    focus_object: str | None
+    width: int  # the full frame, pixels
+    height: int
+    pixel_aspect: float  # pixel width / pixel height
+    region: RenderRegion | None
+    use_dof: bool
+    film_transparent: bool
+    frame: int
+
+    def lens(self) -> dict:
+        """Keyword arguments of :func:`mpib_validate.runtime.camera.blender_camera` (and
+        the header's ``camera.blender``): the full frame's size, ``unit_scale`` 1."""
+        return {"lens_mm": self.lens_mm, "sensor_width_mm": self.sensor_width_mm,
+                "sensor_height_mm": self.sensor_height_mm, "sensor_fit": self.sensor_fit,
+                "fstop": self.fstop, "focus_distance": self.focus_distance,
+                "unit_scale": 1.0, "width": self.width, "height": self.height}
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """``(W, H)`` of the image the render writes (the region when cropped)."""
+        if self.region is not None and self.region.crop:
+            return self.region.size
+        return self.width, self.height
+
+
+def render_size(scene) -> tuple[int, int]:
+    """``(W, H)`` of the full frame: the resolution times its percentage, rounded down as
+    Blender does."""
+    r = scene.render
+    return (r.resolution_x * r.resolution_percentage // 100,
+            r.resolution_y * r.resolution_percentage // 100)
+
+
+def render_region(scene, width: int, height: int) -> RenderRegion | None:
+    """The render region in pixels (None without one, or when it is empty or the whole
+    frame). Blender truncates ``border * size`` to whole pixels; its y runs up."""
+    r = scene.render
+    if not r.use_border:
+        return None
+    x0, x1 = int(r.border_min_x * width), int(r.border_max_x * width)
+    y0, y1 = int(r.border_min_y * height), int(r.border_max_y * height)
+    if x1 <= x0 or y1 <= y0 or (x0, y0, x1, y1) == (0, 0, width, height):
+        return None
+    return RenderRegion(x0, height - y1, x1, height - y0, bool(r.use_crop_to_border))
+
+
+def _evaluate_at(scene, frame) -> None:
+    """Make the scene's objects hold their state at ``frame``: during an animation render
+    Blender evaluates each frame on its render copy only, so the scene's own depsgraph
+    (and the objects read here) may still be at the first frame."""
+    import bpy
+
+    if frame is None:
+        return
+    frame = int(frame)
+    ctx = bpy.context
+    if getattr(ctx, "scene", None) == scene:
+        if ctx.evaluated_depsgraph_get().scene_eval.frame_current == frame:
+            return
+    scene.frame_set(frame)
+
+
+def focus_depth(cam_obj) -> tuple[float, str | None]:
+    """Planar depth (scene units) of the camera's focus as Cycles takes it
+    (``blender_camera_focal_distance``): the focus object's distance from the camera
+    along the camera's view axis, ``|z . (o - c)|`` with ``z`` the normalised local Z
+    axis (a scaled camera measures as unscaled), else ``dof.focus_distance``.
+    Returns ``(depth, focus object name or None)``."""
+    dof = cam_obj.data.dof
+    target = dof.focus_object
+    if target is None:
+        return float(dof.focus_distance), None
+    m = cam_obj.matrix_world
+    view = -m.col[2].xyz.normalized()
+    return abs(float(view.dot(target.matrix_world.translation - m.translation))), target.name
+
+
+def read_camera(scene, frame=None) -> BlenderCamera:
+    """The scene camera at ``frame`` (default: as the scene is now evaluated). Raises
+    :class:`CameraError` when the scene has no camera object."""
+    _evaluate_at(scene, frame)
+    cam_obj = scene.camera
+    if cam_obj is None or cam_obj.type != "CAMERA":
+        raise CameraError("the scene has no camera: set one in Scene properties > Camera")
+    cam = cam_obj.data
+    W, H = render_size(scene)
+    r = scene.render
+    focus, target = focus_depth(cam_obj)
+    return BlenderCamera(
+        name=cam_obj.name, type=cam.type, lens_mm=float(cam.lens),
+        sensor_width_mm=float(cam.sensor_width), sensor_height_mm=float(cam.sensor_height),
+        sensor_fit=cam.sensor_fit, fstop=float(cam.dof.aperture_fstop),
+        focus_distance=focus, focus_object=target, width=W, height=H,
+        pixel_aspect=float(r.pixel_aspect_x) / float(r.pixel_aspect_y),
+        region=render_region(scene, W, H), use_dof=bool(cam.dof.use_dof),
+        film_transparent=bool(r.film_transparent), frame=int(scene.frame_current))
+
+
+def refusal(cam: BlenderCamera, *, focus: bool = True, dof: bool = True) -> str | None:
+    """One line naming the setting the refocus cannot model for ``cam``, or None.
+
+    ``focus``: the camera's focus is used (else the panel's); ``dof``: the camera's own
+    depth of field is refused (a render with it on is already blurred; the compositor
+    node's operator warns instead, since the node blurs later renders)."""
+    if cam.type == "ORTHO":
+        return (f"the camera '{cam.name}' is orthographic: Cycles blurs its depth of field "
+                f"linearly in depth, not in 1/depth as the refocus's planes do; set Camera > "
+                f"Type to Perspective")
+    if cam.type != "PERSP":
+        return (f"the camera '{cam.name}' is {cam.type.lower()}: the refocus models "
+                f"perspective cameras only (Camera > Type)")
+    if dof and cam.use_dof:
+        return (f"the camera '{cam.name}' has Depth of Field on, so the render is already "
+                f"blurred and would be blurred twice: turn off Camera > Depth of Field and "
+                f"render again (its f-stop and focus still set the refocus)")
+    if focus and not cam.focus_distance > 0:
+        where = (f"the focus object '{cam.focus_object}' lies in the camera's plane"
+                 if cam.focus_object else "the focus distance is 0")
+        return (f"the camera '{cam.name}' focuses at depth 0 ({where}): set Camera > Depth "
+                f"of Field > Focus")
+    return None
+
+
+#: A pixel aspect ratio within this of a whole number is taken as that number (Blender
+#: stores Pixel Aspect X and Y as floats; 2:1 anamorphic is exact).
+ASPECT_TOLERANCE = 1e-4
+
+
+def square_pixels(cam: BlenderCamera) -> tuple[int, int]:
+    """``(mx, my)``: how many times to repeat each column and each row of the render so
+    that its pixels are square (Pixel Aspect X:Y = 2:1 gives ``(2, 1)``, 1:2 gives
+    ``(1, 2)``). On the repeated image the thin lens is round and its focal length in
+    pixels is Blender's on the repeated size (the sensor fit compares ``W aspect_x``
+    with ``H aspect_y``, as :func:`~mpib_validate.runtime.camera.blender_focal_length_px`
+    does with the repeated size); averaging each ``mx x my`` block gives the result back
+    at the render's pixels. Raises :class:`CameraError` naming the setting for a ratio
+    that is not a whole number."""
+    a = cam.pixel_aspect
+    m = a if a >= 1.0 else 1.0 / a
+    n = round(m)
+    if abs(m - n) > ASPECT_TOLERANCE * m:
+        raise CameraError(f"Pixel Aspect X:Y is {a:.4g}:1; the refocus takes whole-number "
+                          f"ratios (1:1, 2:1, 1:2 ...): set Output > Format > Pixel Aspect "
+                          f"X and Y accordingly")
+    return (n, 1) if a >= 1.0 else (1, n)

@@ -1,0 +1,365 @@
+"""Runs inside a fresh Python with the bpy module (started by tests/test_artist_scenes.py).
+
+The extension in an artist's ordinary settings (issue 31): registers the extension from
+this checkout, renders small emissive Cycles scenes (64 x 48, the camera of
+tests/blender/addon_session.py: 100 mm on a 36 mm sensor, f/1) as sharp passes and as
+Cycles' own depth of field of the same camera, runs the extension's operators and
+compositor node, and saves the images (``.npy``) and the operators' reports.
+Usage: python artist_session.py ROOT WORKDIR [CASE ...]   (default: every case)
+Prints one line ``RESULT {json}``.
+"""
+
+import json
+import os
+import sys
+
+import bpy
+import numpy as np
+
+root, work = sys.argv[1], sys.argv[2]
+wanted = set(sys.argv[3:])
+sys.path.insert(0, root)
+sys.path.insert(0, os.path.join(root, "tests", "blender"))
+from scene_parts import emitter  # noqa: E402
+
+import blender_addon  # noqa: E402  (this checkout)
+
+blender_addon.register()
+
+if os.path.isdir(os.path.join(root, "mpib_validate", "runtime")):
+    from mpib_validate.runtime.io.exr import find_pass, read_exr, rgba_from  # noqa: E402
+    from mpib_validate.runtime.blender import compat  # noqa: E402
+else:  # before the runtime split
+    from mpib_validate.io.exr import find_pass, read_exr, rgba_from  # noqa: E402
+    from mpib_validate.blender import compat  # noqa: E402
+
+out = {"version": bpy.app.version_string}
+SHARP_SPP, DOF_SPP = 16, 256
+
+
+def clean_scene(w=64, h=48, spp=SHARP_SPP):
+    for coll in (bpy.data.objects, bpy.data.meshes, bpy.data.materials, bpy.data.cameras,
+                 bpy.data.worlds, bpy.data.node_groups, bpy.data.actions):
+        for item in list(coll):
+            coll.remove(item)
+    for img in list(bpy.data.images):
+        if img.name != "Render Result":
+            bpy.data.images.remove(img)
+    sc = bpy.context.scene
+    sc.frame_start = sc.frame_end = 1
+    sc.frame_set(1)
+    sc.render.engine = "CYCLES"
+    sc.cycles.device = "CPU"
+    sc.cycles.samples = spp
+    sc.cycles.seed = 0
+    sc.cycles.use_denoising = False
+    sc.cycles.use_adaptive_sampling = False
+    sc.cycles.max_bounces = 0
+    sc.render.resolution_x, sc.render.resolution_y = w, h
+    sc.render.resolution_percentage = 100
+    sc.render.pixel_aspect_x = sc.render.pixel_aspect_y = 1.0
+    sc.render.use_border = False
+    sc.render.use_crop_to_border = False
+    sc.render.filter_size = 0.01
+    sc.render.film_transparent = False
+    sc.render.use_compositing = False
+    sc.render.use_stamp = False
+    sc.unit_settings.scale_length = 1.0
+    sc.view_settings.view_transform = "Standard"
+    sc.view_layers[0].use_pass_z = True
+    compat.set_multilayer_exr(sc.render.image_settings, color_depth="32")
+    world = bpy.data.worlds.new("black")
+    world.color = (0, 0, 0)
+    if world.node_tree is not None:  # Blender 5.0: a new world has a grey Background node
+        for node in world.node_tree.nodes:
+            if node.type == "BACKGROUND":
+                node.inputs["Strength"].default_value = 0.0
+    sc.world = world
+    cam_data = bpy.data.cameras.new("cam")
+    cam_data.lens, cam_data.sensor_width, cam_data.sensor_fit = 100.0, 36.0, "HORIZONTAL"
+    cam_data.dof.use_dof = False  # sharp passes; the DOF settings hold the lens
+    cam_data.dof.aperture_fstop = 1.0
+    cam_data.dof.aperture_blades = 0
+    cam_data.dof.focus_distance = 6.0
+    cam = bpy.data.objects.new("cam", cam_data)
+    sc.collection.objects.link(cam)
+    sc.camera = cam
+    tree = compat.compositor_tree(sc, create=False)
+    if tree is not None:
+        tree.nodes.clear()
+    s = sc.mpib
+    s.last_passes, s.last_message = "", ""
+    s.refocus_animation = s.save_exr = False
+    s.use_camera_focus = s.use_camera_fstop = True
+    return sc
+
+
+def wall_and_card(wall_size=8.0):
+    """The checker wall at 6 m (in focus) and an orange card at 1.5 m: A = 8.9 px per 1/m,
+    the card blurs by 4.4 px."""
+    emitter("wall", wall_size, (0, 0, -6.0), (0.2, 0.8, 0.3), 6.0)
+    emitter("card", 0.25, (0.08, 0, -1.5), (1.0, 0.3, 0.1))
+
+
+def render_exr(sc, path, dof=False, spp=None):
+    """Render to a multilayer EXR (the compositor as set); returns ``path``."""
+    cam = sc.camera.data
+    old = (cam.dof.use_dof, sc.cycles.samples)
+    cam.dof.use_dof = dof
+    sc.cycles.samples = spp or (DOF_SPP if dof else SHARP_SPP)
+    sc.render.filepath = path
+    bpy.ops.render.render(write_still=True)
+    cam.dof.use_dof, sc.cycles.samples = old
+    return path
+
+
+def rgba(path, layer=None):
+    img = read_exr(path)
+    if layer == "":  # a refocused result: plain R, G, B, A
+        return rgba_from(img, "")
+    if layer is None:
+        layer = next(p for p in sorted({n.split(".")[0] for n in img.channels})
+                     if p != "Composite")
+    return rgba_from(img, f"{layer}.Combined.")
+
+
+def save(name, array):
+    np.save(os.path.join(work, name + ".npy"), np.asarray(array, np.float32))
+
+
+def shown(name="Render Result (refocused)"):
+    im = bpy.data.images.get(name)
+    if im is None:
+        return None
+    return np.array(im.pixels[:], np.float32).reshape(im.size[1], im.size[0], 4)[::-1]
+
+
+def call(op, **kw):
+    """Run an operator; an ERROR report reaches a Python caller as RuntimeError."""
+    try:
+        return sorted(op(**kw))
+    except RuntimeError as exc:
+        return ["RuntimeError: " + str(exc).strip()]
+    except Exception as exc:  # noqa: BLE001 - a raw traceback is what the tests look for
+        return [f"Traceback: {type(exc).__name__}: {exc}"]
+
+
+def refocus_last(sc, tag):
+    """F12 (the extension keeps the passes), then Refocus Last Render."""
+    bpy.data.images.get("Render Result (refocused)") and bpy.data.images.remove(
+        bpy.data.images["Render Result (refocused)"])
+    bpy.ops.render.render(write_still=False)
+    res = {"kept": sc.mpib.last_passes, "kept_message": sc.mpib.last_message}
+    res["call"] = call(bpy.ops.mpib.refocus_render)
+    res["message"] = sc.mpib.last_message
+    img = shown()
+    if img is not None and res["call"] == ["FINISHED"]:
+        save(tag, img)
+    return res
+
+
+def case(name):
+    return not wanted or name in wanted
+
+
+# -- the plain case: the reference figure of every row ---------------------------------------
+if case("plain"):
+    sc = clean_scene()
+    wall_and_card()
+    res = refocus_last(sc, "plain_refocused")
+    save("plain_sharp", rgba(render_exr(sc, os.path.join(work, "plain_sharp.exr"))))
+    save("plain_dof", rgba(render_exr(sc, os.path.join(work, "plain_dof.exr"), dof=True)))
+    out["plain"] = res
+
+
+# -- Refocus Animation: a focus object on a moving rig, and a camera dolly -----------------------
+def animation_scene(kind):
+    """Content at 1.5, 4 and 8 m; three frames focused at 1.5, 4 and 8 m (planar depth),
+    by a focus empty parented to a keyed rig, or by the camera dollying against a fixed
+    focus empty."""
+    sc = clean_scene()
+    emitter("wall", 10.0, (0, 0, -8.0), (0.2, 0.8, 0.3), 6.0)
+    emitter("near", 0.2, (-0.12, 0.02, -1.5), (1.0, 0.3, 0.1))
+    emitter("mid", 0.5, (0.3, -0.1, -4.0), (0.2, 0.3, 1.0), 4.0)
+    target = bpy.data.objects.new("focus_target", None)
+    sc.collection.objects.link(target)
+    sc.camera.data.dof.focus_object = target
+    focus = {1: 1.5, 2: 4.0, 3: 8.0}
+    if kind == "rig":
+        rig = bpy.data.objects.new("rig", None)
+        sc.collection.objects.link(rig)
+        target.parent = rig
+        target.location = (0.05, 0.0, -1.5)
+        for f, z in focus.items():
+            rig.location = (0.0, 0.0, 1.5 - z)
+            rig.keyframe_insert("location", frame=f)
+    else:  # dolly: the camera moves back from 0 to 2.5 m and forward to -2.5 m
+        target.location = (0.0, 0.0, -4.0)
+        cam = sc.camera
+        for f, z in ((1, -2.5), (2, 0.0), (3, 4.0)):  # focus 1.5, 4, 8 m
+            cam.location = (0.0, 0.0, z)
+            cam.keyframe_insert("location", frame=f)
+    sc.frame_start, sc.frame_end = 1, 3
+    sc.frame_set(1)
+    return sc
+
+
+for kind in ("rig", "dolly"):
+    if not case("animation_" + kind):
+        continue
+    sc = animation_scene(kind)
+    sc.mpib.refocus_animation = True
+    folder = os.path.join(work, f"anim_{kind}")
+    sc.render.filepath = os.path.join(folder, "frame_")
+    bpy.ops.render.render(animation=True)
+    sc.mpib.refocus_animation = False
+    res = {"message": sc.mpib.last_message, "frames": {}}
+    sources = {f: sc.render.frame_path(frame=f) for f in (1, 2, 3)}
+    for f in (1, 2, 3):
+        src = sources[f]
+        sib = src[:-4] + "_refocused.exr"
+        rec = {"written": os.path.exists(src), "refocused": os.path.exists(sib)}
+        if rec["refocused"]:
+            head = json.loads(read_exr(sib).header["mpib"])
+            rec["focus_disparity"] = head["focus_disparity"]
+            save(f"anim_{kind}_{f}_refocused", rgba(sib, layer=""))
+        if rec["written"]:
+            save(f"anim_{kind}_{f}_sharp", rgba(src))
+            note = read_exr(src).header.get("Note", "")
+            rec["note"] = note
+        sc.frame_set(f)
+        save(f"anim_{kind}_{f}_dof",
+             rgba(render_exr(sc, os.path.join(work, f"anim_{kind}_{f}_dof.exr"), dof=True)))
+        res["frames"][f] = rec
+    sc.frame_set(1)
+    out["animation_" + kind] = res
+
+
+# -- render regions -------------------------------------------------------------------------
+REGION = (0.25, 0.75, 0.25, 0.75)  # min x, max x, min y, max y (fractions, y up)
+for crop in (True, False):
+    name = "region_crop" if crop else "region_nocrop"
+    if not case(name):
+        continue
+    sc = clean_scene()
+    wall_and_card()
+    r = sc.render
+    r.use_border, r.use_crop_to_border = True, crop
+    r.border_min_x, r.border_max_x, r.border_min_y, r.border_max_y = REGION
+    res = refocus_last(sc, name + "_refocused")
+    save(name + "_sharp", rgba(render_exr(sc, os.path.join(work, name + "_sharp.exr"))))
+    save(name + "_dof", rgba(render_exr(sc, os.path.join(work, name + "_dof.exr"), dof=True)))
+    out[name] = res
+
+
+# -- the compositor node: plain, Unit Scale 0.01, film transparent ---------------------------
+def node_render(sc, tag, **op):
+    """F12 for the slices, Add Refocus Node, render through it; the node's output and the
+    truth (Cycles' depth of field, compositor off) are saved."""
+    bpy.ops.render.render(write_still=False)
+    res = {"call": call(bpy.ops.mpib.add_refocus_node, **op), "message": sc.mpib.last_message}
+    if res["call"] != ["FINISHED"]:
+        return res
+    sc.render.use_compositing = True
+    path = render_exr(sc, os.path.join(work, tag + "_node.exr"))
+    save(tag + "_node", rgba(path, layer="Composite"))
+    save(tag + "_sharp", rgba(path))
+    sc.render.use_compositing = False
+    save(tag + "_dof", rgba(render_exr(sc, os.path.join(work, tag + "_dof.exr"), dof=True)))
+    return res
+
+
+if case("node_plain"):
+    sc = clean_scene()
+    wall_and_card()
+    out["node_plain"] = node_render(sc, "node_plain")
+if case("node_unit"):
+    sc = clean_scene()
+    wall_and_card()
+    sc.unit_settings.scale_length = 0.01
+    out["node_unit"] = node_render(sc, "node_unit")
+if case("film"):
+    sc = clean_scene()
+    wall_and_card(wall_size=1.2)  # the wall covers part of the frame: film shows around it
+    sc.render.film_transparent = True
+    out["film_node"] = node_render(sc, "film")
+    out["film_operator"] = refocus_last(sc, "film_refocused")
+
+
+# -- depth of field left on: every operator says so; the documented workflow is quiet ----------
+if case("dof_on"):
+    sc = clean_scene(spp=4)
+    wall_and_card()
+    res = {}
+    bpy.ops.render.render(write_still=False)
+    sc.mpib.last_message = ""
+    res["off_render"] = [call(bpy.ops.mpib.refocus_render), sc.mpib.last_message]
+    sc.camera.data.dof.use_dof = True
+    bpy.ops.render.render(write_still=False)
+    kept = sc.mpib.last_passes
+    sc.mpib.last_message = ""
+    res["render"] = [call(bpy.ops.mpib.refocus_render), sc.mpib.last_message]
+    sc.mpib.last_message = ""
+    res["file"] = [call(bpy.ops.mpib.refocus_file, filepath=kept), sc.mpib.last_message]
+    sc.mpib.last_message = ""
+    res["focus_pull"] = [call(bpy.ops.mpib.focus_pull, x=40, y=24), sc.mpib.last_message]
+    sc.mpib.last_message = ""
+    res["node"] = [call(bpy.ops.mpib.add_refocus_node), sc.mpib.last_message]
+    sc.mpib.refocus_animation = True
+    sc.render.filepath = os.path.join(work, "dof_anim", "frame_")
+    sc.mpib.last_message = ""
+    bpy.ops.render.render(animation=True)
+    res["animation"] = [os.path.exists(os.path.join(work, "dof_anim", "frame_0001_refocused.exr")),
+                        sc.mpib.last_message]
+    sc.mpib.refocus_animation = False
+    out["dof_on"] = res
+
+
+# -- the artist's compositor tree: Render Layers -> Glare -> output --------------------------
+if case("tree"):
+    sc = clean_scene(spp=4)
+    wall_and_card()
+    tree = compat.compositor_tree(sc, create=True)
+    tree.nodes.clear()
+    rl = tree.nodes.new("CompositorNodeRLayers")
+    glare = tree.nodes.new("CompositorNodeGlare")
+    glare.name = "Glare"
+    outn = compat.tree_output(tree)
+    tree.links.new(rl.outputs["Image"], glare.inputs["Image"])
+    tree.links.new(glare.outputs["Image"], outn.inputs[0])
+    bpy.ops.render.render(write_still=False)
+    res = {"call": call(bpy.ops.mpib.add_refocus_node), "message": sc.mpib.last_message}
+    res["links"] = sorted(f"{l.from_node.name}.{l.from_socket.name} -> {l.to_node.name}."
+                          f"{l.to_socket.name}" for l in tree.links)
+    out["tree"] = res
+
+
+# -- pixel aspect 2:1 ----------------------------------------------------------------------------
+if case("aspect"):
+    sc = clean_scene(w=32, h=48)  # 2:1 pixels: the frame is shown 64 x 48
+    wall_and_card()
+    sc.render.pixel_aspect_x = 2.0
+    res = refocus_last(sc, "aspect_refocused")
+    res["node"] = [call(bpy.ops.mpib.add_refocus_node), sc.mpib.last_message]
+    # the truth: Blender cannot write a multilayer EXR with non-square pixels, a plain one
+    s = sc.render.image_settings
+    if hasattr(s, "media_type"):
+        s.media_type = "IMAGE"
+    s.file_format, s.color_mode, s.color_depth = "OPEN_EXR", "RGBA", "32"
+    p = render_exr(sc, os.path.join(work, "aspect_dof.exr"), dof=True)
+    save("aspect_dof", rgba_from(read_exr(p), ""))
+    compat.set_multilayer_exr(s, color_depth="32")
+    out["aspect"] = res
+
+
+# -- an orthographic camera ----------------------------------------------------------------------
+if case("ortho"):
+    sc = clean_scene(spp=4)
+    wall_and_card()
+    sc.camera.data.type = "ORTHO"
+    res = refocus_last(sc, "ortho_refocused")
+    res["node"] = [call(bpy.ops.mpib.add_refocus_node), sc.mpib.last_message]
+    out["ortho"] = res
+
+blender_addon.unregister()
+print("RESULT " + json.dumps(out), flush=True)
