@@ -279,7 +279,7 @@ class MPIB_OT_focus_pull(bpy.types.Operator):
         s.focus_mode = "PIXEL"
         s.focus_pixel = (self.x, self.y)
         if not pull(context.scene, blocking):
-            self.report({"ERROR"}, s.last_message)
+            self.report({"ERROR"}, s.last_message.removeprefix("error: "))
             return {"CANCELLED"}
         return {"FINISHED"}
 

@@ -85,15 +85,16 @@ def test_refocus_of_a_cycles_render_approaches_cycles_depth_of_field(session):
     ("depth_all_infinite", "at infinity"),
     ("nan", "NaN"),
     ("missing_file", "does not exist"),
-    ("camera_without_dof", "depth of field off"),
-    ("orthographic", "perspective"),
+    ("camera_without_dof", "refocused:"),
+    ("camera_with_dof", "Camera > Depth of Field"),
+    ("orthographic", "orthographic"),
 ])
 def test_bad_input_gets_a_report(session, case, text):
     out, _ = session
     msg = out["reports"][case]
     assert text in msg, msg
-    if case == "camera_without_dof":  # advice, and the refocus still runs
-        assert msg.startswith("warning:") and out["calls"][case] == ["FINISHED"]
+    if case == "camera_without_dof":  # the documented workflow: it runs, no warning
+        assert msg.startswith("refocused:") and out["calls"][case] == ["FINISHED"]
     else:  # the operator is cancelled with an ERROR report (a RuntimeError to Python)
         assert msg.startswith("error:")
         assert out["calls"][case][0].startswith("RuntimeError: Error:"), out["calls"][case]

@@ -314,7 +314,7 @@ calls = {}
 
 def refocus_bad_render(case, **scene):
     """Render a 2-spp scene with the given faults and refocus it; keep the reports."""
-    sc = cycles_scene(spp=2, **{"dof": True, **scene})
+    sc = cycles_scene(spp=2, **{"dof": False, **scene})
     bpy.ops.render.render(write_still=False)
     calls[case] = call(bpy.ops.mpib.refocus_render)
     reports[case] = sc.mpib.last_message
@@ -328,12 +328,13 @@ nan_path = os.path.join(work, "nan.exr")
 depth = np.full((8, 8), 5.0, np.float32)
 depth[2, 3] = np.nan
 write_exr(nan_path, {**channels_from_rgba(np.ones((8, 8, 4), np.float32)), "Depth.Z": depth})
-sc = cycles_scene(dof=True, spp=2)
+sc = cycles_scene(dof=False, spp=2)
 calls["nan"] = call(bpy.ops.mpib.refocus_file, filepath=nan_path)
 reports["nan"] = sc.mpib.last_message
 calls["missing_file"] = call(bpy.ops.mpib.refocus_file, filepath=os.path.join(work, "missing.exr"))
 reports["missing_file"] = sc.mpib.last_message
-refocus_bad_render("camera_without_dof", dof=False)
+refocus_bad_render("camera_without_dof", dof=False)  # the documented workflow: no warning
+refocus_bad_render("camera_with_dof", dof=True)
 refocus_bad_render("orthographic", ortho=True)
 out["reports"] = reports
 out["calls"] = calls

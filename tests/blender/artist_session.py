@@ -279,11 +279,12 @@ if case("node_unit"):
     sc.unit_settings.scale_length = 0.01
     out["node_unit"] = node_render(sc, "node_unit")
 if case("film"):
-    sc = clean_scene()
-    wall_and_card(wall_size=1.2)  # the wall covers part of the frame: film shows around it
-    sc.render.film_transparent = True
-    out["film_node"] = node_render(sc, "film")
-    out["film_operator"] = refocus_last(sc, "film_refocused")
+    for transparent, tag in ((True, "film"), (False, "film_off")):  # and the same scene opaque
+        sc = clean_scene()
+        wall_and_card(wall_size=1.2)  # the wall covers part of the frame: film shows around it
+        sc.render.film_transparent = transparent
+        out[tag + "_node"] = node_render(sc, tag)
+        out[tag + "_operator"] = refocus_last(sc, tag + "_refocused")
 
 
 # -- depth of field left on: every operator says so; the documented workflow is quiet ----------

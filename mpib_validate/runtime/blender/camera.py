@@ -8,8 +8,8 @@ compositor node's operator read the camera and the render settings that fix the 
   planar depth along the camera's view axis, else the focus distance; all as evaluated
   at the frame (animation, drivers, parents and constraints). During an animation
   render Blender evaluates the frame on its render copy only and the scene's own
-  objects keep the first frame's state, so a read at a frame other than the one the
-  scene was last evaluated at sets the frame first (``scene.frame_set``);
+  objects keep the first frame's state, so a read at a given frame sets the frame
+  first (``scene.frame_set``);
 - the full frame (resolution times percentage, rounded down as Blender does), which
   sets the focal length in pixels ``f_px = lens / sensor * W`` also when the render is
   a render region (:class:`RenderRegion`: cropped, the written image is the region
@@ -109,53 +109,66 @@ def render_region(scene, width: int, height: int) -> RenderRegion | None:
     return RenderRegion(x0, height - y1, x1, height - y0, bool(r.use_crop_to_border))
 
 
-def _evaluate_at(scene, frame) -> None:
-    """Make the scene's objects hold their state at ``frame``: during an animation render
-    Blender evaluates each frame on its render copy only, so the scene's own depsgraph
-    (and the objects read here) may still be at the first frame."""
+def _depsgraph_at(scene, frame):
+    """The evaluated depsgraph of ``scene`` (None for a scene that is not the context's:
+    its own objects are then read), evaluated at ``frame`` when one is given.
+
+    During an animation render Blender evaluates each frame on its render copy only: the
+    scene's own depsgraph and objects stay at the first frame. A value keyed after the
+    last evaluation is not applied either until the frame is set again. So a read at a
+    given frame sets it (``scene.frame_set``: animation, drivers, parents and
+    constraints evaluated as for the render); a read without one takes the scene as it
+    is evaluated now (an operator run by the artist). The frame is set on Python's main
+    thread only (in background mode render handlers run there): Blender's interface runs
+    render jobs on a thread of their own, where evaluating the scene would race with the
+    interface, so a handler there reads the scene as it is."""
+    import threading
+
     import bpy
 
-    if frame is None:
-        return
-    frame = int(frame)
+    if frame is not None and threading.current_thread() is threading.main_thread():
+        scene.frame_set(int(frame))
     ctx = bpy.context
-    if getattr(ctx, "scene", None) == scene:
-        if ctx.evaluated_depsgraph_get().scene_eval.frame_current == frame:
-            return
-    scene.frame_set(frame)
+    if getattr(ctx, "scene", None) != scene:
+        return None
+    return ctx.evaluated_depsgraph_get()
 
 
-def focus_depth(cam_obj) -> tuple[float, str | None]:
+def focus_depth(cam_obj, target=None) -> float:
     """Planar depth (scene units) of the camera's focus as Cycles takes it
-    (``blender_camera_focal_distance``): the focus object's distance from the camera
-    along the camera's view axis, ``|z . (o - c)|`` with ``z`` the normalised local Z
-    axis (a scaled camera measures as unscaled), else ``dof.focus_distance``.
-    Returns ``(depth, focus object name or None)``."""
-    dof = cam_obj.data.dof
-    target = dof.focus_object
+    (``blender_camera_focal_distance``): the focus object ``target``'s distance from the
+    camera along the camera's view axis, ``|z . (o - c)|`` with ``z`` the normalised local
+    Z axis (a scaled camera measures as unscaled), else ``dof.focus_distance``."""
     if target is None:
-        return float(dof.focus_distance), None
+        return float(cam_obj.data.dof.focus_distance)
     m = cam_obj.matrix_world
     view = -m.col[2].xyz.normalized()
-    return abs(float(view.dot(target.matrix_world.translation - m.translation))), target.name
+    return abs(float(view.dot(target.matrix_world.translation - m.translation)))
 
 
 def read_camera(scene, frame=None) -> BlenderCamera:
-    """The scene camera at ``frame`` (default: as the scene is now evaluated). Raises
-    :class:`CameraError` when the scene has no camera object."""
-    _evaluate_at(scene, frame)
+    """The scene camera at ``frame`` (default: the current frame), as evaluated there
+    (:func:`_depsgraph_at`). Raises :class:`CameraError` when the scene has no camera
+    object."""
+    depsgraph = _depsgraph_at(scene, frame)
     cam_obj = scene.camera
     if cam_obj is None or cam_obj.type != "CAMERA":
         raise CameraError("the scene has no camera: set one in Scene properties > Camera")
+    target = cam_obj.data.dof.focus_object
+
+    def evaluated(ob):
+        return ob if ob is None or depsgraph is None else ob.evaluated_get(depsgraph)
+
+    cam_obj, target = evaluated(cam_obj), evaluated(target)
     cam = cam_obj.data
     W, H = render_size(scene)
     r = scene.render
-    focus, target = focus_depth(cam_obj)
     return BlenderCamera(
         name=cam_obj.name, type=cam.type, lens_mm=float(cam.lens),
         sensor_width_mm=float(cam.sensor_width), sensor_height_mm=float(cam.sensor_height),
         sensor_fit=cam.sensor_fit, fstop=float(cam.dof.aperture_fstop),
-        focus_distance=focus, focus_object=target, width=W, height=H,
+        focus_distance=focus_depth(cam_obj, target),
+        focus_object=None if target is None else target.name, width=W, height=H,
         pixel_aspect=float(r.pixel_aspect_x) / float(r.pixel_aspect_y),
         region=render_region(scene, W, H), use_dof=bool(cam.dof.use_dof),
         film_transparent=bool(r.film_transparent), frame=int(scene.frame_current))
