@@ -127,7 +127,12 @@ class MPIB_OT_add_refocus_node(bpy.types.Operator):
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         A = max(c.blur_parameter for c in cams)  # the widest aperture of the animation
-        depth = _last_depth(scene)
+        from .operators import _errors
+
+        try:
+            depth = _last_depth(scene)
+        except _errors():  # an unreadable kept render: the bounding boxes instead
+            depth = None
         try:
             if depth is not None:
                 d, tol = ng.place_slices(depth, now.blur_parameter, self.tolerance_px,
@@ -171,6 +176,11 @@ class MPIB_OT_add_refocus_node(bpy.types.Operator):
             if r_max > 0.1 * side:
                 msg += (f"; blur radii up to {r_max:.0f} px are cut to {0.1 * side:.0f} px "
                         f"(Bokeh Blur's limit in Blender 4.x, 10 % of the larger side)")
+        if current.region is not None and not current.region.crop:
+            warn = ("the render region is not cropped: the node blurs the empty frame around "
+                    "it into its rim; tick Output > Format > Crop to Render Region")
+            msg += "; " + warn
+            self.report({"WARNING"}, warn)
         cam = scene.camera.data
         if cam.dof.use_dof:  # the renderer blurs, then the node blurs again
             warn = (f"depth of field is on in the camera '{scene.camera.name}': the render "

@@ -42,12 +42,30 @@ def psnr(ref, test, mask=None) -> float:
     return float(10.0 * np.log10(1.0 / np.mean((a - b) ** 2)))
 
 
-@pytest.fixture(scope="module")
-def artist(tmp_path_factory):
-    pytest.importorskip("bpy")
+def _bpy42_python() -> str | None:
+    # the environment `make test-blender-versions` builds (scripts/blender-versions.txt)
+    cand = os.environ.get("MPIB_BPY42_PYTHON") or str(ROOT / ".venv-bpy42" / "bin" / "python")
+    return cand if os.path.exists(cand) else None
+
+
+@pytest.fixture(scope="module", params=["pinned", "4.2"])
+def artist(request, tmp_path_factory):
+    """The session on the pinned bpy, and on Blender 4.2 LTS where its environment is
+    there (the compositor tree, the multilayer EXR and the node options differ)."""
+    if request.param == "pinned":
+        pytest.importorskip("bpy")
+        python = sys.executable
+    else:
+        python = _bpy42_python()
+        if python is None:
+            pytest.skip("no Blender 4.2 Python (set MPIB_BPY42_PYTHON); the 4.2 run did not run")
     work = tmp_path_factory.mktemp("artist")
     env = dict(os.environ, BLENDER_USER_RESOURCES=str(work / "blender_user"))
-    r = subprocess.run([sys.executable, str(SESSION), str(ROOT), str(work)],
+    if python != sys.executable:  # the project's dependencies, if that Python lacks them
+        import site
+
+        env["MPIB_EXTRA_SITE"] = site.getsitepackages()[0]
+    r = subprocess.run([python, str(SESSION), str(ROOT), str(work)],
                        capture_output=True, text=True, timeout=900, env=env, cwd=work)
     lines = [l for l in r.stdout.splitlines() if l.startswith("RESULT ")]
     assert r.returncode == 0 and lines, r.stdout[-3000:] + r.stderr[-3000:]
@@ -121,6 +139,11 @@ def test_render_region_uncropped_refocuses_the_region_only(artist):
     assert ours[..., 3][inside].min() > 0.999 and ours[..., 3][~inside].max() == 0.0
     figure = psnr(rgb(dof), rgb(ours) * ours[..., 3:], inside)
     assert figure > plain_figure(work) - PLAIN_MARGIN_DB
+    # the focus pull works on the region too, and names it for a pixel outside
+    call, message, shape = out["region_nocrop"]["pull"]
+    assert call == ["FINISHED"] and message.startswith("focus pull:") and shape == [48, 64, 4]
+    call, message = out["region_nocrop"]["pull_outside"]
+    assert call[0].startswith("RuntimeError: Error: ") and "outside the render region" in message
 
 
 def test_node_ignores_the_unit_scale_as_cycles_does(artist):
@@ -177,7 +200,9 @@ def test_node_is_inserted_into_the_artists_compositor_tree(artist):
     was rewired to the node and Glare left dangling)."""
     res = artist[0]["tree"]
     assert res["call"] == ["FINISHED"]
-    assert res["links"] == ["Glare.Image -> Group Output.Image",
+    links = [link.replace("Composite.Image", "Group Output.Image")  # 4.x's output node
+             for link in res["links"]]
+    assert links == ["Glare.Image -> Group Output.Image",
                             "MPIB Refocus.Image -> Glare.Image",
                             "Render Layers.Depth -> MPIB Refocus.Depth",
                             "Render Layers.Image -> MPIB Refocus.Image"]
@@ -196,6 +221,8 @@ def test_pixel_aspect_two_to_one_is_refocused_with_an_anisotropic_blur(artist):
     dof, ours = load(work, "aspect_dof"), load(work, "aspect_refocused")
     assert dof.shape == ours.shape == (48, 32, 4)
     assert psnr(rgb(dof), rgb(ours)) > plain_figure(work) - PLAIN_MARGIN_DB
+    call, message, shape = res["pull"]  # the focus pull too
+    assert call == ["FINISHED"] and message.startswith("focus pull:") and shape == [48, 32, 4]
     call, message = res["node"]
     assert call[0].startswith("RuntimeError: Error: ") and "Pixel Aspect" in message
 
