@@ -15,7 +15,9 @@ def camera_request(scene, settings, image_size, frame=None, purpose: str = "refo
 
     - ``camera``: keyword arguments of :func:`mpib_validate.runtime.camera.blender_camera`
       for the image as refocused (square pixels: see ``stretch``), with the panel's
-      f-stop and focus distance where it overrides the camera's;
+      f-stop and focus distance where it overrides the camera's; None for an
+      orthographic camera, which has ``ortho`` instead: those of
+      :func:`mpib_validate.runtime.camera.blender_orthographic_camera`;
     - ``region``: ``(x0, y0, x1, y1)`` of an uncropped render region in the image (the
       refocus reads and writes only that box; outside it the render holds nothing), or
       None;
@@ -40,13 +42,17 @@ def camera_request(scene, settings, image_size, frame=None, purpose: str = "refo
             region = (r.x0, r.y0, r.x1, r.y1)
     elif (W, H) != (cam.width, cam.height):  # not this scene's render: the frame as it is
         frame_w, frame_h = W, H
-    lens = cam.lens()
+    ortho = cam.type == "ORTHO"
+    lens = cam.orthographic() if ortho else cam.lens()
     lens["width"], lens["height"] = frame_w * mx, frame_h * my
     if not settings.use_camera_fstop:
         lens["fstop"] = settings.fstop
     if not settings.use_camera_focus:
         lens["focus_distance"] = settings.focus_distance
-    return {"camera": lens, "region": region, "stretch": (mx, my), "frame_size": (frame_w, frame_h)}
+    if ortho:
+        lens["far"] = max(cam.clip_end, lens["focus_distance"])
+    return {"camera": None if ortho else lens, "ortho": lens if ortho else None,
+            "region": region, "stretch": (mx, my), "frame_size": (frame_w, frame_h)}
 
 
 def camera_sources(settings, pixel=None) -> dict:

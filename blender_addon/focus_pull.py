@@ -168,8 +168,6 @@ def pull(scene, blocking: bool | None = None) -> bool:
     """Refocus the last render at the panel's focus (pixel or distance) and f-stop:
     preview first, then full resolution. ``blocking=None``: block in background mode
     only. Returns False (with the reason in the panel's status) when it cannot run."""
-    from mpib_validate.runtime.camera import blender_camera
-
     from mpib_validate.runtime.io.exr import image_size
 
     settings = scene.mpib
@@ -177,7 +175,7 @@ def pull(scene, blocking: bool | None = None) -> bool:
         request = operators.prepare(scene, settings.last_passes, NAME, save=None)
         fit = operators.frame_fit(request)
         session = session_for(request["path"], request["preset"], fit)
-        cam = blender_camera(**request["camera"])
+        cam = operators.request_camera(request)
         d_f = cam.focus_disparity
         shape = tuple(image_size(request["path"]))[::-1]
         if request["pixel"] is not None:

@@ -111,7 +111,7 @@ class MPIB_OT_add_refocus_node(bpy.types.Operator):
         try:
             frames, current = scene_cameras(scene)
             for c in (current, *frames):
-                problem = refusal(c, dof=False)
+                problem = refusal(c, dof=False, orthographic=False)
                 if problem:
                     raise calibrate.CalibrationError(problem)
             if current.pixel_aspect != 1.0:

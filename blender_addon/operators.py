@@ -89,8 +89,10 @@ def prepare(context_or_scene, path: str, name: str, frame=None, save=None) -> di
         refuse_overwrite(out, [path])
     from mpib_validate.runtime.blender.layers import artist_layer
 
-    return {"path": path, "name": name, "camera": cam["camera"], "pixel": pixel,
-            "fit": {"region": cam["region"], "stretch": cam["stretch"]},
+    return {"path": path, "name": name, "camera": cam["camera"], "ortho": cam["ortho"],
+            "pixel": pixel,
+            "fit": {"region": cam["region"], "stretch": cam["stretch"],
+                    "linear_far": None if cam["ortho"] is None else cam["ortho"]["far"]},
             "view_layer": artist_layer(scene).name,
             "camera_from": calibrate.camera_sources(settings, pixel),
             "preset": settings.preset, "save": out, "warnings": []}
@@ -103,23 +105,36 @@ def frame_fit(request: dict):
 
     fit = request.get("fit") or {}
     region = fit.get("region")
-    return FrameFit(None if region is None else tuple(region), tuple(fit.get("stretch", (1, 1))))
+    return FrameFit(None if region is None else tuple(region), tuple(fit.get("stretch", (1, 1))),
+                    fit.get("linear_far"))
+
+
+def request_camera(request: dict):
+    """The :class:`mpib_validate.runtime.camera.Camera` (``A``, ``d_f``) of a request: a
+    perspective camera's on disparity ``1/Z``, an orthographic one's on ``far - Z``."""
+    from mpib_validate.runtime.camera import blender_camera, blender_orthographic_camera
+
+    if request.get("ortho"):
+        return blender_orthographic_camera(**request["ortho"])
+    return blender_camera(**request["camera"])
 
 
 def compute(request: dict, progress=None):
     """The refocus itself: no Blender calls, so it may run on a worker thread.
     ``progress(fraction)`` may raise ``mpib_validate.runtime.refocus.Cancelled`` to stop; nothing
     is written then. Returns the :class:`mpib_validate.runtime.refocus.RefocusResult`."""
-    from mpib_validate.runtime.camera import blender_camera
     from mpib_validate.runtime.layers.passes import PassError
     from mpib_validate.runtime.refocus import focus_from_pixel, refocus, write_result
 
     report = progress if progress is not None else (lambda fraction: None)
     full = load_render_passes(request["path"], request.get("view_layer"))
     fit = frame_fit(request)
+    if fit.linear_far is not None and full.groups is not None:
+        raise PassError("an orthographic camera's render is refocused as one pass: untick "
+                        "Layered Render and render again")
     passes = fit.passes(full)
     report(0.05)
-    cam = blender_camera(**request["camera"])
+    cam = request_camera(request)
     d_f = cam.focus_disparity
     if request["pixel"] is not None:
         try:
@@ -148,7 +163,7 @@ def saved_camera(cam, d_f: float, request: dict) -> dict:
 
     from mpib_validate.runtime.io.camera_header import LENS_FIELDS, ResolvedCamera
 
-    lens = {k: request["camera"][k] for k in LENS_FIELDS}
+    lens = None if request["camera"] is None else {k: request["camera"][k] for k in LENS_FIELDS}
     used = ResolvedCamera(replace(cam, focus_disparity=d_f), lens, request["camera_from"])
     return used.header()
 

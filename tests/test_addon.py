@@ -87,7 +87,7 @@ def test_refocus_of_a_cycles_render_approaches_cycles_depth_of_field(session):
     ("missing_file", "does not exist"),
     ("camera_without_dof", "refocused:"),
     ("camera_with_dof", "Camera > Depth of Field"),
-    ("orthographic", "orthographic"),
+    ("panoramic", "panoramic"),
 ])
 def test_bad_input_gets_a_report(session, case, text):
     out, _ = session

@@ -201,6 +201,36 @@ def blender_camera(lens_mm: float, sensor_width_mm: float, sensor_height_mm: flo
     return Camera(width, height, R * f_px, 1.0 / focus_distance, f_px)
 
 
+def blender_orthographic_camera(ortho_scale: float, sensor_fit: str, width: int, height: int,
+                                fstop: float, focus_distance: float, far: float) -> Camera:
+    """The :class:`Camera` of Cycles' depth of field for an orthographic camera, on the
+    depth coordinate ``d = far - Z`` (linear in the planar depth Z; 0 at ``far``, larger
+    nearer), in place of the disparity ``1/Z`` of a perspective camera.
+
+    Cycles (``camera_sample_orthographic``) starts each ray at its pixel's point on the
+    image plane moved by a lens offset ``u`` (``|u| <= R``, ``R = 1 / (2 N)`` scene
+    units: Blender's aperture for orthographic cameras has no focal length) and aims it
+    at the pixel's point at depth ``z_f``; at depth Z the ray is off by ``u (1 - Z /
+    z_f)``, so a point blurs into a disk of radius ``R |Z - z_f| / z_f`` scene units, ``k``
+    times that in pixels with ``k`` pixels per scene unit (``ortho_scale`` across the
+    image width for the HORIZONTAL fit, the height for VERTICAL, the larger side for
+    AUTO). Hence ``r = A |d - d_f|`` with ``A = k R / z_f`` and ``d_f = far - z_f``;
+    ``far`` must be at least every depth refocused (the camera's clip end) and ``z_f``."""
+    fit = str(sensor_fit).upper()
+    if fit not in SENSOR_FITS:
+        raise ValueError(f"unknown sensor fit {sensor_fit!r} (one of {', '.join(SENSOR_FITS)})")
+    for name, value in (("orthographic scale", ortho_scale), ("f-stop", fstop),
+                        ("focus distance", focus_distance)):
+        if not (value > 0) or math.isinf(value):
+            raise ValueError(f"the {name} must be finite and > 0, got {value}")
+    if not far >= focus_distance:
+        raise ValueError(f"the far depth {far} must be at least the focus distance {focus_distance}")
+    side = height if fit == "VERTICAL" or (fit == "AUTO" and height > width) else width
+    k = side / ortho_scale
+    R = 1.0 / (2.0 * fstop)
+    return Camera(width, height, k * R / focus_distance, far - focus_distance, k)
+
+
 # --------------------------------------------------------------------------------------
 # The MPIB paper's parameter convention (photographs with a normalised disparity map)
 

@@ -153,24 +153,37 @@ class FrameFit:
     ``my`` times so that non-square pixels (Blender's Pixel Aspect X:Y = mx:my) become
     square; the refocused image is averaged back over each ``mx x my`` block (the blur is
     linear, so this is the render's pixels blurred by the stretched, anisotropic
-    kernel)."""
+    kernel). ``linear_far``: an orthographic camera's ``far`` (its clip end): the
+    refocus's disparity is then ``far - Z``, linear in depth (0 at ``far`` and beyond,
+    and where nothing was rendered), as
+    :func:`mpib_validate.runtime.camera.blender_orthographic_camera` blurs it."""
 
     region: tuple | None = None
     stretch: tuple = (1, 1)
+    linear_far: float | None = None
 
     @property
     def identity(self) -> bool:
-        return self.region is None and tuple(self.stretch) == (1, 1)
+        return self.region is None and tuple(self.stretch) == (1, 1) and self.linear_far is None
 
     def passes(self, passes: Passes) -> Passes:
-        """The passes the refocus works on: the region, then the square pixels."""
+        """The passes the refocus works on: the region, the square pixels, and the linear
+        depth of an orthographic camera."""
+        from dataclasses import replace
+
         if self.identity:
             return passes
         H, W = passes.depth.shape
         x0, y0, x1, y1 = self.region or (0, 0, W, H)
         mx, my = self.stretch
-        return take_passes(passes, np.repeat(np.arange(y0, y1), my),
-                           np.repeat(np.arange(x0, x1), mx))
+        out = take_passes(passes, np.repeat(np.arange(y0, y1), my),
+                          np.repeat(np.arange(x0, x1), mx))
+        if self.linear_far is not None:
+            z = np.asarray(out.depth, np.float64)
+            far = float(self.linear_far)
+            d = np.where(np.isfinite(z) & (z < far), far - z, 0.0)
+            out = replace(out, disparity=np.maximum(d, 0.0))
+        return out
 
     def pixel(self, x: int, y: int, shape) -> tuple[int, int]:
         """A pixel of the render (from the top left) on the refocus's image; raises

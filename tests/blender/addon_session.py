@@ -18,7 +18,7 @@ zip_path, work = sys.argv[1], sys.argv[2]
 out = {}
 
 
-def cycles_scene(dof: bool, spp: int, depth_pass: bool = True, ortho: bool = False, empty=False):
+def cycles_scene(dof: bool, spp: int, depth_pass: bool = True, pano: bool = False, empty=False):
     # a clean scene without resetting preferences (that would disable the add-on)
     for coll in (bpy.data.objects, bpy.data.meshes, bpy.data.materials, bpy.data.cameras,
                  bpy.data.worlds):
@@ -42,7 +42,7 @@ def cycles_scene(dof: bool, spp: int, depth_pass: bool = True, ortho: bool = Fal
     world.color = (0, 0, 0)
     sc.world = world
     cam_data = bpy.data.cameras.new("cam")
-    cam_data.type = "ORTHO" if ortho else "PERSP"
+    cam_data.type = "PANO" if pano else "PERSP"
     cam_data.lens, cam_data.sensor_width, cam_data.sensor_fit = 100.0, 36.0, "HORIZONTAL"
     cam_data.dof.use_dof = dof
     cam_data.dof.aperture_fstop = 1.0
@@ -335,7 +335,7 @@ calls["missing_file"] = call(bpy.ops.mpib.refocus_file, filepath=os.path.join(wo
 reports["missing_file"] = sc.mpib.last_message
 refocus_bad_render("camera_without_dof", dof=False)  # the documented workflow: no warning
 refocus_bad_render("camera_with_dof", dof=True)
-refocus_bad_render("orthographic", ortho=True)
+refocus_bad_render("panoramic", pano=True)
 out["reports"] = reports
 out["calls"] = calls
 

@@ -71,6 +71,8 @@ class BlenderCamera:
     use_dof: bool
     film_transparent: bool
     frame: int
+    ortho_scale: float = 0.0  # an orthographic camera's view width (Orthographic Scale)
+    clip_end: float = 0.0  # the camera's clip end: no visible depth lies beyond it
 
     def lens(self) -> dict:
         """Keyword arguments of :func:`mpib_validate.runtime.camera.blender_camera` (and
@@ -79,6 +81,15 @@ class BlenderCamera:
                 "sensor_height_mm": self.sensor_height_mm, "sensor_fit": self.sensor_fit,
                 "fstop": self.fstop, "focus_distance": self.focus_distance,
                 "unit_scale": 1.0, "width": self.width, "height": self.height}
+
+    def orthographic(self) -> dict:
+        """Keyword arguments of
+        :func:`mpib_validate.runtime.camera.blender_orthographic_camera` for an
+        orthographic camera (``far``: the clip end, or the focus if farther)."""
+        return {"ortho_scale": self.ortho_scale, "sensor_fit": self.sensor_fit,
+                "width": self.width, "height": self.height, "fstop": self.fstop,
+                "focus_distance": self.focus_distance,
+                "far": max(self.clip_end, self.focus_distance)}
 
     @property
     def image_size(self) -> tuple[int, int]:
@@ -171,22 +182,28 @@ def read_camera(scene, frame=None) -> BlenderCamera:
         focus_object=None if target is None else target.name, width=W, height=H,
         pixel_aspect=float(r.pixel_aspect_x) / float(r.pixel_aspect_y),
         region=render_region(scene, W, H), use_dof=bool(cam.dof.use_dof),
-        film_transparent=bool(r.film_transparent), frame=int(scene.frame_current))
+        film_transparent=bool(r.film_transparent), frame=int(scene.frame_current),
+        ortho_scale=float(cam.ortho_scale), clip_end=float(cam.clip_end))
 
 
-def refusal(cam: BlenderCamera, *, focus: bool = True, dof: bool = True) -> str | None:
+def refusal(cam: BlenderCamera, *, focus: bool = True, dof: bool = True,
+            orthographic: bool = True) -> str | None:
     """One line naming the setting the refocus cannot model for ``cam``, or None.
 
     ``focus``: the camera's focus is used (else the panel's); ``dof``: the camera's own
     depth of field is refused (a render with it on is already blurred; the compositor
-    node's operator warns instead, since the node blurs later renders)."""
-    if cam.type == "ORTHO":
+    node's operator warns instead, since the node blurs later renders);
+    ``orthographic``: orthographic cameras are refocused (on a depth linear in Z,
+    :func:`mpib_validate.runtime.camera.blender_orthographic_camera`); the compositor
+    node, whose slices are in 1/Z, refuses them."""
+    if cam.type == "ORTHO" and not orthographic:
         return (f"the camera '{cam.name}' is orthographic: Cycles blurs its depth of field "
-                f"linearly in depth, not in 1/depth as the refocus's planes do; set Camera > "
-                f"Type to Perspective")
-    if cam.type != "PERSP":
-        return (f"the camera '{cam.name}' is {cam.type.lower()}: the refocus models "
-                f"perspective cameras only (Camera > Type)")
+                f"linearly in depth, not in 1/depth as the node's slices are; use Refocus "
+                f"Last Render, or set Camera > Type to Perspective")
+    if cam.type not in ("PERSP", "ORTHO"):
+        kind = {"PANO": "panoramic"}.get(cam.type, cam.type.lower())
+        return (f"the camera '{cam.name}' is {kind}: the refocus models perspective and "
+                f"orthographic cameras only (Camera > Type)")
     if dof and cam.use_dof:
         return (f"the camera '{cam.name}' has Depth of Field on, so the render is already "
                 f"blurred and would be blurred twice: turn off Camera > Depth of Field and "
