@@ -14,8 +14,12 @@ compositor node's operator read the camera and the render settings that fix the 
   sets the focal length in pixels ``f_px = lens / sensor * W`` also when the render is
   a render region (:class:`RenderRegion`: cropped, the written image is the region
   only; uncropped, the frame with nothing outside the region);
-- the pixel aspect ratio, the camera type, whether the camera's own depth of field is
-  on, and the film's transparency.
+- the pixel aspect ratio, the camera type (an orthographic camera's Orthographic Scale
+  and clip end), whether the camera's own depth of field is on, and the film's
+  transparency.
+
+More of the camera (e.g. the aperture's blades, rotation and ratio) goes into
+:class:`BlenderCamera` and :func:`read_camera`, so that every operator gets it.
 
 Cycles takes the lens in mm as 1e-3 Blender units whatever the scene's Unit Scale (its
 depth of field does not change with ``unit_settings.scale_length``), so the lens
