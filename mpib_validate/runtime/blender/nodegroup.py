@@ -64,7 +64,9 @@ animate focus and aperture):
    alpha 1; the second output "Alpha" is ``acc_a``, the coverage of Eq. 1. With the
    input "Film Transparent" at 1 (a render whose world is transparent: alpha 0 at
    infinity) the output is ``(acc_rgb, acc_a)`` itself, premultiplied, as Cycles' depth of
-   field gives it (the normalisation would divide by a coverage that is ~0 there).
+   field gives it (the normalisation would divide by a coverage that is ~0 there). Not
+   normalised, a Convolve slice (zero-padded) then also fades within its blur radius of
+   the frame's border; Bokeh Blur extends the border and does not.
 
 Slices are placed from the depth of the last render (:func:`place_slices`): the
 adaptive planes of :func:`mpib_validate.runtime.layers.mpi.adaptive_planes` (only where content is,
