@@ -59,9 +59,17 @@ def stamp_camera(scene) -> str:
         cam = read_camera(scene, frame=scene.frame_current)
     except CameraError as exc:
         return f"the camera is not recorded in the render's metadata: {exc}"
+    # the header's camera (read by `mpib refocus`) is a perspective camera on the whole
+    # frame with square pixels: where the render is not that, it is not written
+    why = None
     if cam.type != "PERSP":
-        return (f"the camera is not recorded in the render's metadata: the camera "
-                f"'{cam.name}' is not a perspective camera")
+        why = f"the camera '{cam.name}' is not a perspective camera"
+    elif cam.pixel_aspect != 1.0:
+        why = "the pixels are not square (Output > Format > Pixel Aspect)"
+    elif cam.region is not None and not cam.region.crop:
+        why = "the render region is not cropped (Output > Format > Crop to Render Region)"
+    if why:
+        return f"the camera is not recorded in the render's metadata: {why}"
     lens = cam.lens()
     own = r.stamp_note_text if r.use_stamp_note else ""
     try:

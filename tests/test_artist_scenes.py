@@ -139,6 +139,7 @@ def test_render_region_uncropped_refocuses_the_region_only(artist):
     assert ours[..., 3][inside].min() > 0.999 and ours[..., 3][~inside].max() == 0.0
     figure = psnr(rgb(dof), rgb(ours) * ours[..., 3:], inside)
     assert figure > plain_figure(work) - PLAIN_MARGIN_DB
+    assert "Crop to Render Region" in out["region_nocrop"]["kept_message"]  # no header camera
     # the focus pull works on the region too, and names it for a pixel outside
     call, message, shape = out["region_nocrop"]["pull"]
     assert call == ["FINISHED"] and message.startswith("focus pull:") and shape == [48, 64, 4]
@@ -221,6 +222,9 @@ def test_pixel_aspect_two_to_one_is_refocused_with_an_anisotropic_blur(artist):
     dof, ours = load(work, "aspect_dof"), load(work, "aspect_refocused")
     assert dof.shape == ours.shape == (48, 32, 4)
     assert psnr(rgb(dof), rgb(ours)) > plain_figure(work) - PLAIN_MARGIN_DB
+    # the header camera (for `mpib refocus`, which models square pixels) is not written
+    assert "not recorded in the render's metadata" in res["kept_message"]
+    assert "Pixel Aspect" in res["kept_message"]
     call, message, shape = res["pull"]  # the focus pull too
     assert call == ["FINISHED"] and message.startswith("focus pull:") and shape == [48, 32, 4]
     call, message = res["node"]
