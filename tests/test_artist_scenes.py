@@ -263,6 +263,16 @@ def test_orthographic_blur_is_linear_in_depth():
         blender_orthographic_camera(2.16, "AUTO", 48, 64, 2.0, 6.0, 5.0)
 
 
+def test_read_camera_at_a_frame_on_the_main_thread_and_off_it(artist):
+    """At frame 2 of a keyed focus distance and focal length (6 m, 100 mm at frame 1;
+    1.5 m, 50 mm at frame 2), from frame 1: on the main thread the frame is set and read;
+    on another thread (an interface render job's) the scene is left as it is and the
+    camera's keys are read from their F-curves."""
+    got = artist[0]["thread"]
+    assert got["thread"] == [1.5, 50.0, 1]
+    assert got["main"] == [1.5, 50.0, 2]
+
+
 # -- the pieces without Blender --------------------------------------------------------------
 
 def test_frame_fit_maps_a_region_and_square_pixels_there_and_back():

@@ -381,6 +381,36 @@ if case("ortho"):
     res["node"] = [call(bpy.ops.mpib.add_refocus_node), sc.mpib.last_message]
     out["ortho"] = res
 
+# -- read_camera off the main thread (as in an interface render job): the camera's keys --
+if case("thread"):
+    import threading
+
+    from mpib_validate.runtime.blender.camera import read_camera
+
+    sc = clean_scene()
+    cam = sc.camera.data
+    cam.dof.focus_distance, cam.lens = 6.0, 100.0
+    cam.dof.keyframe_insert("focus_distance", frame=1)
+    cam.keyframe_insert("lens", frame=1)
+    cam.dof.focus_distance, cam.lens = 1.5, 50.0
+    cam.dof.keyframe_insert("focus_distance", frame=2)
+    cam.keyframe_insert("lens", frame=2)
+    sc.frame_end = 2
+    sc.frame_set(1)
+    got = {}
+
+    def job():
+        c = read_camera(sc, frame=2)
+        got["thread"] = [c.focus_distance, c.lens_mm, sc.frame_current]
+
+    t = threading.Thread(target=job)
+    t.start()
+    t.join()
+    c = read_camera(sc, frame=2)
+    got["main"] = [c.focus_distance, c.lens_mm, sc.frame_current]
+    sc.frame_set(1)
+    out["thread"] = got
+
 blender_addon.unregister()
 print("RESULT " + json.dumps(out), flush=True)
 if bpy.app.version < (5, 0):

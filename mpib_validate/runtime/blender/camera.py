@@ -136,17 +136,22 @@ def _depsgraph_at(scene, frame):
     is evaluated now (an operator run by the artist). The frame is set on Python's main
     thread only (in background mode render handlers run there): Blender's interface runs
     render jobs on a thread of their own, where evaluating the scene would race with the
-    interface, so a handler there reads the scene as it is."""
-    import threading
-
+    interface, so a handler there reads the scene as it is (and :func:`read_camera` the
+    camera's own keyed values from their F-curves)."""
     import bpy
 
-    if frame is not None and threading.current_thread() is threading.main_thread():
+    if frame is not None and _main_thread():
         scene.frame_set(int(frame))
     ctx = bpy.context
     if getattr(ctx, "scene", None) != scene:
         return None
     return ctx.evaluated_depsgraph_get()
+
+
+def _main_thread() -> bool:
+    import threading
+
+    return threading.current_thread() is threading.main_thread()
 
 
 def focus_depth(cam_obj, target=None) -> float:
@@ -176,13 +181,23 @@ def read_camera(scene, frame=None) -> BlenderCamera:
 
     cam_obj, target = evaluated(cam_obj), evaluated(target)
     cam = cam_obj.data
+    lens, fstop = float(cam.lens), float(cam.dof.aperture_fstop)
+    focus = focus_depth(cam_obj, target)
+    if frame is not None and not _main_thread():  # a render job's thread: the keys
+        from mpib_validate.runtime.blender.compat import fcurve_value
+
+        data = scene.camera.data
+        lens = float(fcurve_value(data, "lens", frame, lens))
+        fstop = float(fcurve_value(data, "dof.aperture_fstop", frame, fstop))
+        if target is None:
+            focus = float(fcurve_value(data, "dof.focus_distance", frame, focus))
     W, H = render_size(scene)
     r = scene.render
     return BlenderCamera(
-        name=cam_obj.name, type=cam.type, lens_mm=float(cam.lens),
+        name=cam_obj.name, type=cam.type, lens_mm=lens,
         sensor_width_mm=float(cam.sensor_width), sensor_height_mm=float(cam.sensor_height),
-        sensor_fit=cam.sensor_fit, fstop=float(cam.dof.aperture_fstop),
-        focus_distance=focus_depth(cam_obj, target),
+        sensor_fit=cam.sensor_fit, fstop=fstop,
+        focus_distance=focus,
         focus_object=None if target is None else target.name, width=W, height=H,
         pixel_aspect=float(r.pixel_aspect_x) / float(r.pixel_aspect_y),
         region=render_region(scene, W, H), use_dof=bool(cam.dof.use_dof),

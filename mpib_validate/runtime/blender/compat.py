@@ -24,6 +24,8 @@ node options           RNA properties (``node.filter_type``)       many became i
                                                                    take the item's UI name: ``'Gaussian'``)
 Cycles sample subset   4.2: ``sample_offset`` skips samples;       ``use_sample_subset``, ``sample_offset``,
                        4.5 as 5.x                                  ``sample_subset_length``
+an ID's F-curves      ``action.fcurves``                          4.4+: slotted actions, the F-curves in the
+                                                                   slot's channel bag (:func:`fcurve_value`)
 multilayer EXR of      (not checked)                               5.0.1 refuses to write it ("Conflicting
 non-square pixels                                                  attributes ... 'pixelAspectRatio'"):
                                                                    :func:`save_render` writes it as 1:1
@@ -34,6 +36,7 @@ group with them): :func:`compositor_tree`, :func:`tree_output`,
 :func:`set_multilayer_exr`, :data:`MATH`, :data:`MAP_RANGE`, :data:`MIX`,
 :data:`VALUE`, :func:`node_idname`, :func:`new_node`, :func:`mix_inputs`, :func:`mix_output`,
 :func:`set_option`, plus :func:`set_sample_subset` (Cycles), :func:`save_render`,
+:func:`fcurve_value`,
 :func:`has_compositing_node_group`,
 :func:`has_compositor_effects` and :func:`version`.
 
@@ -169,6 +172,27 @@ def set_multilayer_exr(image_settings, color_depth: str | None = "32",
         image_settings.color_depth = color_depth
     if codec is not None:
         image_settings.exr_codec = codec
+
+
+def fcurve_value(id_data, data_path: str, frame, default):
+    """``data_path`` of ``id_data`` at ``frame`` from its keyframes (``default`` without
+    one). Blender 4.4+ keeps an action's F-curves per slot (the channel bag of the ID's
+    ``action_slot``); 4.2 and 4.3 in ``action.fcurves``."""
+    ad = getattr(id_data, "animation_data", None)
+    if frame is None or ad is None or ad.action is None:
+        return default
+    fcurves = None
+    try:
+        from bpy_extras import anim_utils
+
+        bag = anim_utils.action_get_channelbag_for_slot(ad.action, ad.action_slot)
+        fcurves = bag.fcurves if bag is not None else None
+    except (ImportError, AttributeError):
+        pass
+    if fcurves is None:
+        fcurves = getattr(ad.action, "fcurves", None)
+    fc = fcurves.find(data_path) if fcurves is not None else None
+    return fc.evaluate(frame) if fc is not None else default
 
 
 def save_render(image, path: str, scene) -> None:
