@@ -31,12 +31,8 @@ import blender_addon  # noqa: E402  (this checkout)
 
 blender_addon.register()
 
-if os.path.isdir(os.path.join(root, "mpib_validate", "runtime")):
-    from mpib_validate.runtime.io.exr import find_pass, read_exr, rgba_from  # noqa: E402
-    from mpib_validate.runtime.blender import compat  # noqa: E402
-else:  # before the runtime split
-    from mpib_validate.io.exr import find_pass, read_exr, rgba_from  # noqa: E402
-    from mpib_validate.blender import compat  # noqa: E402
+from mpib_validate.runtime.blender import compat  # noqa: E402
+from mpib_validate.runtime.io.exr import read_exr, rgba_from  # noqa: E402
 
 out = {"version": bpy.app.version_string}
 SHARP_SPP, DOF_SPP = 16, 256
