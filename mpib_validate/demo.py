@@ -507,8 +507,10 @@ def hero_image(case: Case, images: dict, rows: list[dict], places: list[dict]):
         else:
             img, r = images[m][0], by[m]
             sub = f"PSNR {r['psnr']:.1f} dB, at edges {r['psnr_ob']:.1f} dB"
+            # no times: they vary with the machine's load, the picture and its
+            # figures do not (demo.json has the times)
             figures.append({"panel": title, "method": m, "psnr": r["psnr"],
-                            "psnr_ob": r["psnr_ob"], "seconds": r["seconds"]})
+                            "psnr_ob": r["psnr_ob"]})
         figures[-1]["box"] = [x0, head, W, H]  # where the full frame lies in the picture
         d.text((x0, 2), title, fill="black", font=big)
         d.text((x0, 2 + int(1.3 * big_px)), sub, fill=(70, 70, 70), font=small)
@@ -605,29 +607,49 @@ def write_gallery(out: Path, summary: dict, cases: list[Case]) -> list[Path]:
          "img{image-rendering:pixelated}</style></head><body>",
          "<h1>mpib demo</h1>", f"<p>{e(_intro(summary))}</p>", f"<p>{e(_run_line(summary))}</p>"]
     M = ["# mpib demo", "", _intro(summary), "", _run_line(summary), ""]
+    # the headline: PSNR_ob of every method per scene and focus
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    by = {(r["scene"], r["focus"], r["method"]): r for r in rows}
+    head = ["scene, focus"] + methods
+    table = [[f"{c.scene}, {c.focus}"] + [_fmt(by[(c.scene, c.focus, m)]["psnr_ob"])
+                                          if (c.scene, c.focus, m) in by else "-"
+                                          for m in methods] for c in cases]
+    what = ("PSNR_ob (dB) against each scene's reference, inside the occlusion-boundary "
+            "mask (higher is better); the tables below give PSNR, SSIM and times.")
+    H += ["<h2>Summary</h2>", f"<p>{e(what)}</p>", "<table><tr>"
+          + "".join(f"<th>{e(h)}</th>" for h in head) + "</tr>"]
+    H += ["<tr>" + "".join(f"<td>{e(v)}</td>" for v in row) + "</tr>" for row in table]
+    H += ["</table>"]
+    M += ["## Summary", "", what, "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    M += ["| " + " | ".join(row) + " |" for row in table] + [""]
     if summary.get("hero"):
         hero = summary["hero"]
         cap = "; ".join(f"{p['panel']}: PSNR {p['psnr']:.2f} dB, PSNR_ob {p['psnr_ob']:.2f} dB"
                         for p in hero["panels"] if "psnr" in p)
-        H += ["<h2>Boundaries</h2>", f"<p>{e(hero['scene'])}; {e(cap)} (against "
-              f"{e(hero['reference'])}). Crops: {e('; '.join(c['what'] for c in hero['crops']))}.</p>",
+        crops = "; ".join(f"{c['what']} ({o})" for c, o in zip(hero["crops"],
+                                                                hero["crop_outlines"]))
+        text = (f"{hero['scene']}: the sharp input, Blender's Defocus node, mpib's default "
+                f"preset and {hero['reference']}; {cap}. Crops (outlined in the frames): "
+                f"{crops}.")
+        H += ["<h2>At the boundaries</h2>", f"<p>{e(text)}</p>",
               f"<img src='{e(hero['picture'])}' alt='hero'>"]
-        M += ["## Boundaries", "", f"{hero['scene']}; {cap} (against {hero['reference']}). "
-              f"Crops: {'; '.join(c['what'] for c in hero['crops'])}.", "",
-              f"![hero]({hero['picture']})", ""]
+        M += ["## At the boundaries", "", text, "", f"![hero]({hero['picture']})", ""]
     H += ["<h2>Speed against error</h2>",
-          "<p>PSNR_ob against each scene's reference, against time; filled: near focus, open: "
-          "far focus; lines: the sharp input.</p>", "<img src='speed-error.png' alt='speed'>"]
-    M += ["## Speed against error", "", "PSNR_ob against each scene's reference, against "
-          "time; filled: near focus, open: far focus; lines: the sharp input.", "",
-          "![speed against error](speed-error.png)", ""]
+          "<p>PSNR_ob against each scene's reference, against the time of one refocus on "
+          "this run's machine and load; filled: near focus, open: far focus; grey lines: the "
+          "sharp input.</p>", "<img src='speed-error.png' alt='speed'>"]
+    M += ["## Speed against error", "", "PSNR_ob against each scene's reference, against the "
+          "time of one refocus on this run's machine and load; filled: near focus, open: far "
+          "focus; grey lines: the sharp input.", "", "![speed against error](speed-error.png)", ""]
     for case in cases:
         n = case.name
         sel = [r for r in rows if r["scene"] == case.scene and r["focus"] == case.focus]
         c = summary["cases"][n]
         lead = (f"A = {case.A:.2f} px per unit disparity, d_f = {case.d_f:.4f}; largest blur "
                 f"radius {c['largest_radius_px']:.1f} px; reference: {case.reference_label} "
-                f"({case.reference_seconds:.1f} s).")
+                f"(rendered in {case.reference_seconds:.1f} s"
+                + (f"; its noise: PSNR {c['noise_psnr']:.1f} dB" if "noise_psnr" in c else "")
+                + ").")
         H += [f"<h2>{e(case.title)}</h2>", f"<p>{e(lead)}</p>", "<table><tr>"
               + "".join(f"<th>{e(h)}</th>" for h in HEADER) + "</tr>"]
         H += ["<tr>" + "".join(f"<td>{e(v)}</td>" for v in row) + "</tr>"
