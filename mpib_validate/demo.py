@@ -83,7 +83,15 @@ MIN_SIDE, MAX_SIDE = 16, 4096
 
 @dataclass(frozen=True)
 class DemoSettings:
-    """Sizes and sample counts of a run (the defaults: ``make demo``)."""
+    """Sizes and sample counts of a run (the defaults: ``make demo``).
+
+    ``trace_spp``: the card scene's HDR highlights blur into bokeh disks of about 30 px
+    radius at the near focus, which the tracer's aperture samples cover sparsely: PSNR
+    between two seeds (clipped) 27.4 dB at 1024 samples, 35.9 at 4096, 43.6 at 16384
+    (about 7 CPU s per focus at 256x256). ``spp``: the Cycles truth's noise (the mean of
+    its two seeds, clipped) is 47.8 / 49.1 dB PSNR at 64 samples per seed and 51.4 /
+    52.7 dB at 128 (near / far focus), below every method's error.
+    """
 
     card_size: int = 256
     trace_spp: int = 16384
