@@ -493,8 +493,9 @@ def hero_image(case: Case, images: dict, rows: list[dict], places: list[dict]):
 
     H, W = case.reference.shape[:2]
     by = {r["method"]: r for r in rows if r["scene"] == case.scene and r["focus"] == case.focus}
+    truth = "Cycles' depth of field" if case.scene == "blender" else "Ray tracer (reference)"
     panels = [(SHARP, "Sharp input"), (NODE, "Blender's Defocus node"),
-              (DEFAULT, "mpib (default preset)"), ("reference", "Cycles' depth of field")]
+              (DEFAULT, "mpib (default preset)"), ("reference", truth)]
     panels = [(m, t) for m, t in panels if m == "reference" or m in images]
     outline = [(255, 210, 0), (0, 200, 255)]
     big_px, small_px, pad = max(10, W // 20), max(8, W // 27), 4
