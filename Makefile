@@ -1,11 +1,12 @@
-# The two README commands:  `make demo`  and  `make test`.
-# Both build the environment first (idempotent), so a fresh clone needs nothing else.
+# The README commands:  `make demo`  (a picture gallery in a few minutes),  `make test`
+# and  `make bench`  (the full benchmark). Each builds the environment first
+# (idempotent), so a fresh clone needs nothing else.
 PY ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test test-all test-blender-versions bench addon official clean
+.PHONY: setup demo hero test test-all test-blender-versions bench addon official clean
 
 $(STAMP): pyproject.toml constraints.txt scripts/setup.sh
 	bash scripts/setup.sh $(PY) $(VENV)
@@ -15,7 +16,10 @@ setup: $(STAMP)
 
 demo: $(STAMP)
 	$(BIN)/mpib demo --out out/demo
-	$(BIN)/mpib bench --out out/bench
+
+# The README's picture (docs/images/hero.jpg and its figures, hero.json), from the demo.
+hero: $(STAMP)
+	$(BIN)/mpib demo --out out/demo --hero docs/images/hero.jpg
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -m "not slow" -q
@@ -29,8 +33,11 @@ test-all: $(STAMP)
 test-blender-versions:
 	bash scripts/test_blender_versions.sh
 
+# Every suite (quick mode; BENCH_FLAGS=--full for the full sample counts). The Cycles
+# renders of the Blender suite take most of the first run and are cached after it.
+BENCH_FLAGS ?=
 bench: $(STAMP)
-	$(BIN)/mpib bench --out out/bench
+	$(BIN)/mpib bench --out out/bench $(BENCH_FLAGS)
 
 # The optional extra for `mpib bench --suite official`: CPU torch 2.13.0 (about 200 MB).
 # TORCH_INDEX is an extra index for the CPU build; empty (the default) uses pip's own
