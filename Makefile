@@ -48,6 +48,10 @@ official: $(STAMP)
 	$(BIN)/python -m pip install -q --disable-pip-version-check -c constraints.txt \
 		$(if $(TORCH_INDEX),--extra-index-url $(TORCH_INDEX)) -e ".[official]"
 
+# The Blender extension, one zip per platform: dist/mpib_refocus-<version>-<platform>.zip
+# for windows_x64, macos_arm64, macos_x64 and linux_x64 (Blender's --split-platforms),
+# each checked by scripts/check_addon.py as Blender would install it. The tests install
+# and run the Linux zip; the Windows and macOS zips are built and checked, not run.
 addon: $(STAMP)
 	$(BIN)/python scripts/build_addon.py --out dist
 

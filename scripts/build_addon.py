@@ -1,21 +1,24 @@
 #!/usr/bin/env python3
-"""Build the Blender extension zip: the project's wheel, the wheels it needs, validate, build.
+"""Build the Blender extension: one zip per platform, each with the runtime's wheel and
+its platform's dependency wheels; validate and check them.
 
-Usage: python scripts/build_addon.py [--out dist]
+Usage: python scripts/build_addon.py [--out dist] [--fetch-only]
 
-The manifest (blender_addon/blender_manifest.toml) names every wheel. The project's own
-wheel is built from this checkout; the others (OpenEXR, SciPy; Blender ships numpy) are
-downloaded from PyPI for the Python version and platform in each file name (cp311 for
-Blender 4.2 to 5.0, cp313 for 5.1+), pinned by those names. `--fetch-only` (run by
-scripts/setup.sh) downloads them once; building afterwards needs no network. Then
-Blender's own extension tool (inside the bpy wheel) validates and builds the zip, so
-no Blender binary is needed. Nothing is downloaded at run time.
+The manifest (blender_addon/blender_manifest.toml) lists the platforms and every wheel.
+The runtime's wheel (``mpib_validate/__init__.py`` and ``mpib_validate/runtime/``: what
+refocusing needs, none of the validation harness) is built from this checkout; the
+others (OpenEXR, SciPy; Blender ships numpy) are downloaded from PyPI for the Python
+version and platform in each file name, pinned by those names. ``--fetch-only`` (run by
+scripts/setup.sh) downloads them once; building afterwards needs no network. Blender's
+own extension tool (inside the bpy wheel, no Blender binary needed) validates the source
+and builds with ``--split-platforms``: one zip per platform, holding only the wheels of
+that platform (``mpib_refocus-<version>-<platform>.zip``). scripts/check_addon.py then
+checks each zip as Blender would install it. Nothing is downloaded at run time.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import re
 import shutil
 import subprocess
@@ -27,18 +30,29 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 ADDON = ROOT / "blender_addon"
 WHEEL_RE = re.compile(r"^(?P<name>[^-]+)-(?P<version>[^-]+)-(?P<py>[^-]+)-(?P<abi>[^-]+)-(?P<plat>.+)\.whl$")
+#: What the runtime's wheel holds, relative to the checkout: the package's
+#: ``__init__.py`` (units and version) and the runtime subpackage, Python files only.
+RUNTIME_FILES = ("mpib_validate/__init__.py", "mpib_validate/runtime")
+#: The runtime wheel's project file: no dependencies (Blender bundles numpy; the
+#: extension bundles OpenEXR and SciPy beside it and installs no dependency itself).
+RUNTIME_PYPROJECT = """\
+[build-system]
+requires = ["setuptools>=68", "wheel"]
+build-backend = "setuptools.build_meta"
 
+[project]
+name = "mpib-validate"
+version = "{version}"
+description = "MPIB refocusing runtime (the MPIB Refocus Blender extension's compositor)"
+requires-python = ">=3.11,<3.14"
+license = {{ text = "MIT" }}
 
-def blender_ext() -> Path:
-    spec = importlib.util.find_spec("bpy")
-    if spec is None or not spec.submodule_search_locations:
-        sys.exit("build_addon: the bpy module is needed for Blender's extension tool "
-                 "(pip install mpib-validate[blender])")
-    base = Path(list(spec.submodule_search_locations)[0])
-    found = sorted(base.glob("*/scripts/addons_core/bl_pkg/cli/blender_ext.py"))
-    if not found:
-        sys.exit(f"build_addon: blender_ext.py not found under {base}")
-    return found[-1]
+[tool.setuptools.packages.find]
+include = ["mpib_validate*"]
+"""
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import check_addon  # noqa: E402
 
 
 def _can_build_offline() -> bool:
@@ -64,25 +78,31 @@ def run(cmd, **kw):
     subprocess.run(cmd, check=True, **kw)
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--out", default=str(ROOT / "dist"), help="output folder for the zip")
-    ap.add_argument("--fetch-only", action="store_true",
-                    help="only download the dependency wheels the manifest names (set-up step)")
-    args = ap.parse_args()
-    manifest = tomllib.loads((ADDON / "blender_manifest.toml").read_text())
-    wheels_dir = ADDON / "wheels"
-    wheels_dir.mkdir(exist_ok=True)
-    wanted = [Path(w).name for w in manifest.get("wheels", [])]
-    if not args.fetch_only:
-        # the project's own wheel; offline when the environment has a recent setuptools
-        flags = ["--no-build-isolation"] if _can_build_offline() else []
-        with tempfile.TemporaryDirectory() as tmp:
-            run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", *flags, "-w", tmp,
-                 str(ROOT)])
-            for whl in Path(tmp).glob("*.whl"):
-                shutil.copy2(whl, wheels_dir / whl.name)
-    for name in wanted:
+def runtime_wheel(dest: Path) -> Path:
+    """Build the runtime's wheel into ``dest`` from a staging copy of :data:`RUNTIME_FILES`."""
+    version = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
+    flags = ["--no-build-isolation"] if _can_build_offline() else []
+    with tempfile.TemporaryDirectory() as tmp:
+        stage = Path(tmp) / "stage"
+        for rel in RUNTIME_FILES:
+            src = ROOT / rel
+            files = [src] if src.is_file() else sorted(src.rglob("*.py"))
+            for f in files:
+                dst = stage / f.relative_to(ROOT)
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                shutil.copy2(f, dst)
+        (stage / "pyproject.toml").write_text(RUNTIME_PYPROJECT.format(version=version))
+        out = Path(tmp) / "out"
+        run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", *flags, "-w", str(out),
+             str(stage)])
+        (whl,) = out.glob("*.whl")
+        shutil.copy2(whl, dest / whl.name)
+        return dest / whl.name
+
+
+def fetch(names: list[str], wheels_dir: Path) -> None:
+    """Download the dependency wheels named in the manifest that are not here yet."""
+    for name in names:
         if (wheels_dir / name).exists() or name.startswith("mpib_validate-"):
             continue
         m = WHEEL_RE.match(name)
@@ -96,21 +116,44 @@ def main() -> int:
              "--abi", m["abi"], *plats, "-d", str(wheels_dir), f"{m['name']}=={m['version']}"])
         if not (wheels_dir / name).exists():
             sys.exit(f"build_addon: pip did not download {name} (check the name in the manifest)")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--out", default=str(ROOT / "dist"), help="output folder for the zips")
+    ap.add_argument("--fetch-only", action="store_true",
+                    help="only download the dependency wheels the manifest names (set-up step)")
+    args = ap.parse_args()
+    manifest = tomllib.loads((ADDON / "blender_manifest.toml").read_text())
+    wheels_dir = ADDON / "wheels"
+    wheels_dir.mkdir(exist_ok=True)
+    wanted = [Path(w).name for w in manifest.get("wheels", [])]
+    fetch(wanted, wheels_dir)
     if args.fetch_only:
         print(f"build_addon: dependency wheels ready in {wheels_dir}")
         return 0
+    runtime_wheel(wheels_dir)
     missing = [n for n in wanted if not (wheels_dir / n).exists()]
     if missing:
         sys.exit(f"build_addon: wheels named in the manifest are missing: {missing}")
     for extra in wheels_dir.glob("*.whl"):
         if extra.name not in wanted:
-            extra.unlink()  # an old build's wheel: keep the zip to what the manifest says
-    tool = blender_ext()
+            # not in the manifest (an old build's wheel): Blender's build would copy it
+            # into every zip as a plain file
+            extra.unlink()
+    tool = check_addon.blender_ext_path()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    for old in out.glob(f"{manifest['id']}-*.zip"):
+        old.unlink()  # an earlier build's zips (another version, or the one-platform zip)
     run([sys.executable, str(tool), "validate", str(ADDON)])
-    run([sys.executable, str(tool), "build", "--source-dir", str(ADDON), "--output-dir", str(out)])
-    zips = sorted(out.glob(f"{manifest['id']}-{manifest['version']}*.zip"))
+    run([sys.executable, str(tool), "build", "--split-platforms", "--source-dir", str(ADDON),
+         "--output-dir", str(out)])
+    zips = sorted(out.glob(f"{manifest['id']}-{manifest['version']}-*.zip"))
+    if len(zips) != len(manifest["platforms"]):
+        sys.exit(f"build_addon: expected {len(manifest['platforms'])} zips, got {zips}")
+    if check_addon.main([str(z) for z in zips]) != 0:
+        sys.exit("build_addon: the zips fail the checks above")
     print(f"build_addon: wrote {', '.join(str(z) for z in zips)}")
     return 0
 

@@ -1,8 +1,8 @@
 """The Blender extension, headless in real Blender (the bpy module, Cycles on the CPU).
 
-The zip is built with Blender's own extension tool, installed into a throw-away
-extension repository of a fresh bpy process (its user resources in a temporary folder),
-and driven through its operators. The Blender session runs in a subprocess so that
+The zip of this machine's platform is built with Blender's own extension tool,
+installed into a throw-away extension repository of a fresh bpy process (its user
+resources in a temporary folder), and driven through its operators. The Blender session runs in a subprocess so that
 its global state never meets the rest of the test suite.
 """
 
@@ -26,14 +26,23 @@ pytestmark = pytest.mark.blender
 MARGIN_DB = 6.0
 
 
+def _host_platform() -> str:
+    sys.path.insert(0, str(ROOT / "scripts"))
+    import check_addon
+
+    return check_addon.host_platform()
+
+
 @pytest.fixture(scope="module")
 def session(tmp_path_factory):
     work = tmp_path_factory.mktemp("addon")
     r = subprocess.run([sys.executable, str(ROOT / "scripts" / "build_addon.py"), "--out",
                         str(work / "dist")], capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
-    zips = list((work / "dist").glob("mpib_refocus-*.zip"))
-    assert len(zips) == 1
+    # one zip per platform (tests/test_extension_wheels.py checks them all); this
+    # machine's is the one Blender can install here
+    zips = list((work / "dist").glob(f"mpib_refocus-*-{_host_platform()}.zip"))
+    assert len(zips) == 1, sorted(p.name for p in (work / "dist").iterdir())
     env = dict(os.environ, BLENDER_USER_RESOURCES=str(work / "blender_user"))
     env.pop("PYTHONPATH", None)  # mpib_validate from the zip's wheel only, not this checkout
     r = subprocess.run([sys.executable, str(ROOT / "tests" / "blender" / "addon_session.py"),

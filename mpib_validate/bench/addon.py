@@ -2,7 +2,7 @@
 multilayer EXR (colour + depth) inside Blender (the bpy module), per quality preset,
 with the EXR read and the refocused EXR written (the round trip an artist runs).
 
-The zip is built by ``scripts/build_addon.py`` and installed into a throw-away
+The zip of this machine's platform is built by ``scripts/build_addon.py`` and installed into a throw-away
 extension repository of a fresh bpy process; the operator is the blocking path that a
 script or background mode takes (the interactive one runs the same work on a thread).
 The camera is set so that the calibration gives the same blur parameter and focus as
@@ -48,7 +48,10 @@ def run(out: Path, quick: bool = True) -> dict:
         print("bench addon: building the extension zip ...", flush=True)
         r = subprocess.run([sys.executable, str(build), "--out", str(tmp / "dist")],
                            capture_output=True, text=True)
-        zips = sorted((tmp / "dist").glob("*.zip"))
+        sys.path.insert(0, str(build.parent))
+        import check_addon  # scripts/: this machine's platform, as in the zip names
+
+        zips = sorted((tmp / "dist").glob(f"*-{check_addon.host_platform()}.zip"))
         if r.returncode != 0 or not zips:
             result["error"] = (r.stderr or r.stdout).strip().splitlines()[-1:]
             return finish(out, "addon", result, _markdown)
