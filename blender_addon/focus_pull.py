@@ -283,14 +283,13 @@ class MPIB_OT_focus_pull(bpy.types.Operator):
 
 
 classes = (MPIB_OT_focus_pull,)
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
 
 
 def register():
-    for c in classes:
-        bpy.utils.register_class(c)
+    _register_classes()
 
 
 def unregister():
     drop_session()
-    for c in reversed(classes):
-        bpy.utils.unregister_class(c)
+    _unregister_classes()

@@ -10,10 +10,22 @@ import bpy
 from bpy.app.handlers import persistent
 
 
+def kept_dir() -> str:
+    """The folder of the last render's kept passes: the extension's user directory
+    (``bpy.utils.extension_path_user``: ``<user extensions>/.user/<repository>/
+    mpib_refocus/last_render``), Blender's place for an extension's own files, outside
+    the extension's folder, which an update replaces. Registered without being installed
+    as an extension (as some tests do), the system's temporary folder."""
+    try:
+        return bpy.utils.extension_path_user(__package__, path="last_render")
+    except ValueError:  # not an extension: registered directly
+        return tempfile.gettempdir()
+
+
 def passes_path(scene) -> str:
-    """Where the last render's passes are kept (a per-scene temporary EXR)."""
+    """Where the last render's passes are kept (one EXR per scene and Blender process)."""
     safe = "".join(ch if ch.isalnum() else "_" for ch in scene.name)
-    return os.path.join(tempfile.gettempdir(), f"mpib_last_render_{os.getpid()}_{safe}.exr")
+    return os.path.join(kept_dir(), f"mpib_last_render_{os.getpid()}_{safe}.exr")
 
 
 def save_render_passes(scene) -> str:
@@ -26,6 +38,7 @@ def save_render_passes(scene) -> str:
     s = scene.render.image_settings
     old = (getattr(s, "media_type", None), s.file_format, s.color_depth)
     path = passes_path(scene)
+    os.makedirs(os.path.dirname(path), exist_ok=True)
     try:
         from mpib_validate.runtime.blender.compat import save_render, set_multilayer_exr
 
@@ -125,10 +138,14 @@ def on_render_write(scene, *_):
     refocus_frame_file(scene, scene.render.frame_path(frame=scene.frame_current))
 
 
+_kept = {"dir": None}  # kept_dir() at registration (bpy may be gone at exit)
+
+
 def remove_kept_passes() -> None:
     """Delete this Blender process's kept passes (they are only a cache of the last
     render; nothing else refers to them once the add-on is off or Blender quits)."""
-    pattern = os.path.join(tempfile.gettempdir(), f"mpib_last_render_{os.getpid()}_*.exr")
+    folder = _kept["dir"] or kept_dir()
+    pattern = os.path.join(folder, f"mpib_last_render_{os.getpid()}_*.exr")
     for path in glob.glob(pattern):
         try:
             os.remove(path)
@@ -146,6 +163,7 @@ def _handlers():
 def register():
     for lst, fn in _handlers():
         lst.append(fn)
+    _kept["dir"] = kept_dir()
     atexit.register(remove_kept_passes)
 
 

@@ -154,11 +154,11 @@ class MPIB_OT_remove_layers(_SceneOperator, bpy.types.Operator):
 
 
 classes = (MPIB_OT_setup_layers, MPIB_OT_remove_layers)
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
 
 
 def register():
-    for c in classes:
-        bpy.utils.register_class(c)
+    _register_classes()
     bpy.types.Collection.mpib_depth_group = BoolProperty(
         name="Depth Group", default=False,
         description="Render this collection's objects as their own depth group (MPIB "
@@ -167,5 +167,4 @@ def register():
 
 def unregister():
     del bpy.types.Collection.mpib_depth_group
-    for c in reversed(classes):
-        bpy.utils.unregister_class(c)
+    _unregister_classes()

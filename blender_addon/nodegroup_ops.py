@@ -203,8 +203,12 @@ def draw_add_menu(self, context):
 _MENU = "NODE_MT_category_compositor_filter_blur"
 
 
+classes = (MPIB_OT_add_refocus_node,)
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
+
+
 def register():
-    bpy.utils.register_class(MPIB_OT_add_refocus_node)
+    _register_classes()
     menu = getattr(bpy.types, _MENU, None)
     if menu is not None:
         menu.append(draw_add_menu)
@@ -214,5 +218,5 @@ def unregister():
     menu = getattr(bpy.types, _MENU, None)
     if menu is not None:
         menu.remove(draw_add_menu)
-    bpy.utils.unregister_class(MPIB_OT_add_refocus_node)
+    _unregister_classes()
 

@@ -75,11 +75,15 @@ class MPIB_Settings(bpy.types.PropertyGroup):
     last_message: StringProperty(name="Status", description="What the last run reported")
 
 
+classes = (MPIB_Settings,)
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
+
+
 def register():
-    bpy.utils.register_class(MPIB_Settings)
+    _register_classes()
     bpy.types.Scene.mpib = PointerProperty(type=MPIB_Settings)
 
 
 def unregister():
     del bpy.types.Scene.mpib
-    bpy.utils.unregister_class(MPIB_Settings)
+    _unregister_classes()

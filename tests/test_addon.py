@@ -135,7 +135,20 @@ def test_focus_pull_shows_a_preview_then_the_full_result_from_the_kept_mpi(sessi
 def test_unregister_leaves_nothing_behind(session):
     out, _ = session
     assert out["after_disable"] == {"types": [], "scene_property": False, "handlers": [],
-                                    "kept_passes": [], "collection_property": False}
+                                    "kept_passes": [], "temporary_files": [],
+                                    "collection_property": False}
+
+
+def test_keeps_the_passes_in_the_extension_user_directory(session):
+    """Blender's extension rules: files only where the user asks, or in the extension's
+    user directory (``bpy.utils.extension_path_user``), never in the system's
+    temporary folder or the extension's own folder."""
+    out, work = session
+    user = os.path.realpath(out["extension_user_dir"])
+    kept = os.path.realpath(out["kept_dir"])
+    assert kept.startswith(user + os.sep) and kept.endswith(os.path.join("mpib_refocus",
+                                                                         "last_render")), out
+    assert kept.startswith(os.path.realpath(work / "blender_user") + os.sep)
 
 
 def test_beats_the_defocus_node_at_occlusion_boundaries(session):

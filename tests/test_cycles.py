@@ -19,6 +19,7 @@ import pytest
 bpy = pytest.importorskip("bpy")
 
 from mpib_validate.blender import cycles
+from mpib_validate.runtime.blender import compat
 from mpib_validate.baselines import defocus_node as dn
 from mpib_validate.runtime import samples
 from mpib_validate.cards import trace
@@ -401,7 +402,7 @@ def test_defocus_node_defects_still_present():
     # exceeds the smallest window (area ratio 16; timing noise on a busy machine
     # allowed). Blender 4.5 and 5.x; 4.2's node costs the same whatever blur_max
     # (measured ratio 0.8 to 1.1 on bpy 4.2.23, with and without its preview mode).
-    if bpy.app.version >= (4, 5, 0):
+    if compat.version() >= (4, 5, 0):
         assert d["search_cost_ratio"] > 2.0, d
     # a blurred foreground does not spread over an in-focus background (truth: ~r/4 per
     # edge pixel); anything under 10 % of the truth is the defect

@@ -12,7 +12,7 @@ import tempfile
 
 import bpy
 import numpy as np
-from scene_parts import emitter  # noqa: E402  (this folder: the script's own)
+from scene_parts import checkout_compat, emitter  # noqa: E402  (this folder: the script's own)
 
 zip_path, work = sys.argv[1], sys.argv[2]
 out = {}
@@ -118,6 +118,9 @@ out["bundled_dir"] = bpy.utils.user_resource("EXTENSIONS", path=".local")
 sc = cycles_scene(dof=False, spp=16)
 bpy.ops.render.render(write_still=False)  # the add-on's handler keeps the passes
 out["kept_passes"] = bool(sc.mpib.last_passes and os.path.exists(sc.mpib.last_passes))
+kept_dir = os.path.dirname(sc.mpib.last_passes)
+out["kept_dir"] = kept_dir
+out["extension_user_dir"] = bpy.utils.user_resource("EXTENSIONS", path=".user")
 sharp = read_rgb(sc.mpib.last_passes)
 from mpib_validate.runtime.io.exr import find_pass, read_exr  # noqa: E402
 
@@ -347,16 +350,16 @@ out["after_disable"] = {
     "collection_property": hasattr(bpy.types.Collection, "mpib_depth_group"),
     "handlers": [f.__name__ for f in bpy.app.handlers.render_complete + bpy.app.handlers.render_write
                  if f.__module__.startswith("bl_ext")],
-    "kept_passes": [p for p in os.listdir(tempfile.gettempdir())
+    "kept_passes": [p for p in os.listdir(kept_dir)
                     if p.startswith(f"mpib_last_render_{os.getpid()}_")],
+    "temporary_files": [p for p in os.listdir(tempfile.gettempdir())
+                        if p.startswith(f"mpib_last_render_{os.getpid()}_")],
 }
 print("RESULT " + json.dumps(out), flush=True)
-if bpy.app.version < (5, 0):
+if checkout_compat().module_teardown_crashes():
     # bpy 4.2 as a Python module segfaults in its own teardown, after everything above has
     # run, once an add-on has registered a property with an update callback (found by
-    # bisecting: the extension without its two update callbacks exits 0; bpy 5.0.1 and
-    # 5.3 exit 0 with them; 4.5 not tried). Not seen in Blender itself, which this
-    # machine cannot run. Skip the module's teardown: the result above is what the test
-    # reads.
+    # bisecting: the extension without its two update callbacks exits 0). Skip the
+    # module's teardown: the result above is what the test reads.
     sys.stdout.flush()
     os._exit(0)

@@ -27,3 +27,17 @@ def emitter(name, size, location, colour, checker=0.0):
     nt.links.new(em.outputs["Emission"], outn.inputs["Surface"])
     obj.data.materials.append(mat)
     return obj
+
+
+def checkout_compat():
+    """This checkout's ``mpib_validate/runtime/blender/compat.py``, loaded by its path
+    (it imports nothing of the project): for a session that may run without the project
+    importable (a ``reopen`` session, or after the extension and its wheels are gone)."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "mpib_validate" / "runtime" / "blender" / "compat.py"
+    spec = importlib.util.spec_from_file_location("_mpib_checkout_compat", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod

@@ -38,7 +38,9 @@ group with them): :func:`compositor_tree`, :func:`tree_output`,
 :func:`set_option`, plus :func:`set_sample_subset` (Cycles), :func:`save_render`,
 :func:`fcurve_value`,
 :func:`has_compositing_node_group`,
-:func:`has_compositor_effects` and :func:`version`.
+:func:`has_compositor_effects`, :func:`legacy_compositor_api`,
+:func:`module_teardown_crashes` and :func:`version`. No other module of the project
+reads ``bpy.app.version`` (``tests/test_extension_conventions.py`` refuses it).
 
 ``bpy`` is imported lazily (inside the functions), so the package imports without it.
 """
@@ -84,6 +86,22 @@ def has_compositor_effects() -> bool:
     each with its own node group (Blender 5.3; ``scene.compositing_node_group``
     still works there but warns that it goes away in 6.0)."""
     return "compositor_effects" in _scene_props()
+
+
+def legacy_compositor_api() -> bool:
+    """True for the 4.2 to 4.5 compositor API (``scene.node_tree``, a Composite node,
+    node options as RNA properties, no Convolve node); False for 5.x (a node group,
+    options as input sockets). Detected as :func:`has_compositing_node_group` is."""
+    return not has_compositing_node_group()
+
+
+def module_teardown_crashes() -> bool:
+    """True where bpy as a Python module segfaults in its own teardown after a session
+    that registered a property with an update callback (the extension) or rendered the
+    MPIB node group: bpy 4.2.23 (found by bisecting; 4.5 not tried); 5.0.1 and 5.3.0
+    exit 0. Not seen in Blender itself. No API shows it, so this one is a version test:
+    the test sessions print their result and then leave with ``os._exit``."""
+    return version() < (5, 0, 0)
 
 
 def has_compositing_node_group() -> bool:

@@ -97,13 +97,15 @@ GROUP_NAME = "MPIB Refocus"
 # Version-dependent helpers: the compositor tree and its output come from the shared
 # module (mpib_validate.runtime.blender.compat: 5.3's compositor effects, 5.0's node group, 4.x's
 # scene.node_tree); the node idnames this graph needs are here.
-from mpib_validate.runtime.blender.compat import compositor_tree, tree_output  # noqa: E402,F401
+from mpib_validate.runtime.blender.compat import (  # noqa: E402,F401
+    compositor_tree, legacy_compositor_api, tree_output)
 
 
-def is_legacy_api(bpy) -> bool:
+def is_legacy_api(bpy=None) -> bool:
     """True for Blender 4.2-4.5 (``scene.node_tree``, Composite node, node options as
-    properties); False for 5.x (``scene.compositing_node_group``, options as sockets)."""
-    return tuple(bpy.app.version) < (5, 0, 0)
+    properties); False for 5.x (``scene.compositing_node_group``, options as sockets):
+    :func:`~mpib_validate.runtime.blender.compat.legacy_compositor_api`."""
+    return legacy_compositor_api()
 
 
 #: Node idnames per API: (5.x, 4.2-4.5).
