@@ -16,6 +16,8 @@ For each zip (one per platform, built by ``scripts/build_addon.py`` with Blender
   filter (``bl_extension_ops._extensions_wheel_filter_for_this_system``, restated in
   :func:`installed`) picks exactly one wheel of each needed distribution, and no wheel
   is left that no release on that platform can use;
+- the Python versions Blender reads from the zip's wheels (``python_versions_from_wheels``:
+  it refuses the zip on any other) are those of the releases on the platform;
 - a macOS wheel runs on the oldest macOS of every release that installs it (its
   ``macosx_X_Y`` tag at most that version), or of the platform's declared floor
   (:data:`MACOS_FLOOR`).
@@ -212,6 +214,12 @@ def check_zip(path: Path, ext=None, tool: Path | None = None) -> tuple[dict, lis
                 problems.append(f"{path.name}: {Path(w).name} needs macOS {need[0]}.{need[1]}; "
                                 f"Blender {blender} on {platform} runs from "
                                 f"{oldest[0]}.{oldest[1]}")
+    # the Pythons Blender reads from the zip's wheels (it refuses the zip on any other)
+    read = ext.python_versions_from_wheels(sorted(listed)) if listed else set()
+    want = {tuple(int(x) for x in py.split(".")) for py in served.values()}
+    if isinstance(read, str) or {v for v in read if len(v) == 2} != want:
+        problems.append(f"{path.name}: Blender reads Python versions {read} from the wheels; "
+                        f"the releases on {platform} run {sorted(want)}")
     for w in sorted(listed - used):
         problems.append(f"{path.name}: {Path(w).name}: no Blender release on {platform} installs it")
     if not served:

@@ -148,6 +148,8 @@ def test_checker_refuses_a_zip_without_the_newer_python(zips, tmp_path):
         assert any(f"Blender {blender} (Python 3.13) would install 0 wheels of scipy" in p
                    for p in probs), probs
     assert not any("Blender 4.2" in p for p in probs), probs
+    # Blender itself would refuse it on 5.1+: it reads only 3.11 from the wheels
+    assert any("Blender reads Python versions {(3, 11)}" in p for p in probs), probs
 
 
 def test_checker_refuses_a_wheel_no_release_on_the_platform_installs(zips, tmp_path):
