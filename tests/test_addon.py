@@ -43,14 +43,20 @@ def session(tmp_path_factory):
     # machine's is the one Blender can install here
     zips = list((work / "dist").glob(f"mpib_refocus-*-{_host_platform()}.zip"))
     assert len(zips) == 1, sorted(p.name for p in (work / "dist").iterdir())
+    others = sorted(z for z in (work / "dist").glob("mpib_refocus-*.zip") if z not in zips)
     env = dict(os.environ, BLENDER_USER_RESOURCES=str(work / "blender_user"))
     env.pop("PYTHONPATH", None)  # mpib_validate from the zip's wheel only, not this checkout
     r = subprocess.run([sys.executable, str(ROOT / "tests" / "blender" / "addon_session.py"),
-                        str(zips[0]), str(work)], capture_output=True, text=True, timeout=900,
+                        str(zips[0]), str(work), str(others[0])], capture_output=True,
+                       text=True, timeout=900,
                        env=env, cwd=work)
     lines = [l for l in r.stdout.splitlines() if l.startswith("RESULT ")]
     assert r.returncode == 0 and lines, r.stdout[-3000:] + r.stderr[-3000:]
-    return json.loads(lines[-1][7:]), work
+    out = json.loads(lines[-1][7:])
+    # what Blender printed when it refused the other platform's zip
+    out["refusals"] = [l.strip() for l in (r.stdout + r.stderr).splitlines() if "isn't one of" in l]
+    out["other_zip"] = others[0].name
+    return out, work
 
 
 def card_edge_mask(depth):
@@ -60,6 +66,19 @@ def card_edge_mask(depth):
     A = 0.1 / 2.0 * 100.0 / 36.0 * 64  # R f_px, as the session's camera
     D = np.where(depth < 1e9, 1.0 / depth, 0.0)
     return occlusion_mask(boundaries_from_disparity(D, 1.0 / A), D, A, 1.0 / 6.0)
+
+
+def test_refuses_another_platforms_zip(session):
+    """Each zip's manifest names its platform ([build.generated], written by Blender's
+    --split-platforms); Blender refuses a zip of another platform and installs nothing."""
+    out, _ = session
+    platform = out["other_zip"].rsplit("-", 1)[1][:-4].replace("_", "-", 1)
+    # background Blender reports the refusal on stdout (the operator itself returns
+    # FINISHED there) and installs and enables nothing
+    here = _host_platform().replace("_", "-", 1)
+    assert any(f"This platform ({here}) isn't one of ({platform})" in l
+               for l in out["refusals"]), out["refusals"]
+    assert out["other_platform_files"] == [] and out["other_platform_enabled"] == [], out
 
 
 def test_installs_registers_and_bundles_its_wheel(session):

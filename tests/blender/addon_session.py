@@ -15,6 +15,7 @@ import numpy as np
 from scene_parts import checkout_compat, emitter  # noqa: E402  (this folder: the script's own)
 
 zip_path, work = sys.argv[1], sys.argv[2]
+other_zip = sys.argv[3] if len(sys.argv) > 3 else None  # another platform's zip
 out = {}
 
 
@@ -99,6 +100,16 @@ def call(op, **kw):
 
 # -- install ---------------------------------------------------------------------------
 prefs = bpy.context.preferences
+if other_zip:  # Blender refuses another platform's zip (its manifest names that platform)
+    other_dir = tempfile.mkdtemp(dir=work)
+    prefs.extensions.repos.new(name="mpib_other", module="mpib_other",
+                               custom_directory=other_dir, source="USER")
+    out["other_platform_install"] = call(bpy.ops.extensions.package_install_files,
+                                         filepath=other_zip, repo="mpib_other",
+                                         enable_on_install=True)
+    out["other_platform_files"] = sorted(f for f in os.listdir(other_dir) if not f.startswith("."))
+    out["other_platform_enabled"] = [a.module for a in prefs.addons
+                                     if a.module.startswith("bl_ext.mpib_other.")]
 repo_dir = tempfile.mkdtemp(dir=work)
 prefs.extensions.repos.new(name="mpib_test", module="mpib_test", custom_directory=repo_dir,
                            source="USER")
