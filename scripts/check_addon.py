@@ -10,6 +10,7 @@ For each zip (one per platform, built by ``scripts/build_addon.py`` with Blender
 - its manifest names exactly the platform of its file name (``[build.generated]``);
 - every wheel the manifest lists is in the zip, and every wheel in the zip is listed;
 - the runtime's wheel holds only ``mpib_validate/__init__.py`` and ``mpib_validate/runtime``;
+- every wheel is a wheel whose own ``WHEEL`` file carries the tags of its file name;
 - every wheel's platform tag is the zip's platform (Blender's own mapping of wheel tags
   to platforms), its Python tag cp311 or cp313 (or pure ``py3-none-any``);
 - for each Blender release of :data:`BLENDER` that runs on the platform, Blender's wheel
@@ -141,6 +142,14 @@ def installed(wheels: list[str], platform: str, python: str) -> list[str]:
     return out
 
 
+def wheel_file_tags(wheel: zipfile.ZipFile) -> set[str]:
+    """The ``Tag:`` lines of a wheel's ``*.dist-info/WHEEL`` (what the wheel was built
+    for, whatever its file is called)."""
+    (meta,) = [n for n in wheel.namelist() if re.fullmatch(r"[^/]+\.dist-info/WHEEL", n)]
+    return {line.split(":", 1)[1].strip() for line in wheel.read(meta).decode().splitlines()
+            if line.startswith("Tag:")}
+
+
 def macos_min(wheel: str) -> tuple[int, int] | None:
     """Oldest macOS of a wheel (the lowest of its ``macosx_X_Y`` tags), None if not macOS."""
     found = [MACOS_RE.match(p) for p in wheel_tags(Path(wheel).name)[3].split(".")]
@@ -176,9 +185,22 @@ def check_zip(path: Path, ext=None, tool: Path | None = None) -> tuple[dict, lis
     for w in sorted(in_zip - listed):
         problems.append(f"{path.name}: wheel in the zip but not in the manifest: {w}")
     for w in sorted(listed & in_zip):
-        if wheel_tags(Path(w).name)[0] == "mpib-validate":
+        name = Path(w).name
+        try:
             with zipfile.ZipFile(path) as zf, zf.open(w) as fh, zipfile.ZipFile(fh) as inner:
-                extra = [n for n in inner.namelist() if not RUNTIME_RE.match(n)]
+                names = inner.namelist()
+                tags = wheel_file_tags(inner)
+        except (zipfile.BadZipFile, KeyError, ValueError) as exc:
+            problems.append(f"{path.name}: {name} is not a readable wheel ({exc})")
+            continue
+        _, py, abi, plat = wheel_tags(name)
+        named = {f"{p}-{a}-{pl}" for p in py.split(".") for a in abi.split(".")
+                 for pl in plat.split(".")}
+        if not named <= tags:
+            problems.append(f"{path.name}: {name}: its file name's tags {sorted(named - tags)} "
+                            f"are not in its WHEEL file ({sorted(tags)})")
+        if wheel_tags(name)[0] == "mpib-validate":
+            extra = [n for n in names if not RUNTIME_RE.match(n)]
             if extra:
                 problems.append(f"{path.name}: the runtime wheel holds more than the runtime: "
                                 f"{extra[:3]}{' ...' if len(extra) > 3 else ''} ({len(extra)} files)")

@@ -3,7 +3,7 @@
 `make addon` (scripts/build_addon.py) builds one zip per platform of the manifest with
 Blender's own ``extension build --split-platforms``; scripts/check_addon.py checks each:
 Blender's validate, the manifest's wheels present and nothing else, each wheel's
-platform and Python tags, one wheel of each dependency for every Blender release on the
+platform and Python tags (in its name and its WHEEL file), one wheel of each dependency for every Blender release on the
 platform (4.2 to 5.0: Python 3.11, 5.1 and later: 3.13), macOS wheels within the macOS
 versions those releases run on, and the runtime's wheel holding only the runtime.
 
@@ -135,6 +135,18 @@ def test_checker_refuses_a_wheel_of_another_platform(zips, tmp_path):
     bad = _rewrite(src, tmp_path / src.name, add={win: data}, wheels=listed)
     probs = _problems(bad)
     assert any(f"{Path(win).name} is not for macos-x64" in p for p in probs), probs
+
+
+def test_checker_refuses_a_renamed_wheel(zips, tmp_path):
+    """The Linux OpenEXR wheel under the Windows wheel's name: the file names pass, the
+    wheel's own WHEEL file does not."""
+    src = zips["windows_x64"]
+    win = next(w for w in _wheels_of(src) if "openexr" in w and "cp311" in w)
+    with zipfile.ZipFile(zips["linux_x64"]) as zf:
+        linux = zf.read(next(w for w in zf.namelist() if "openexr" in w and "cp311" in w))
+    bad = _rewrite(src, tmp_path / src.name, add={win: linux})
+    probs = _problems(bad)
+    assert len(probs) == 1 and "['cp311-cp311-win_amd64'] are not in its WHEEL file" in probs[0], probs
 
 
 def test_checker_refuses_a_zip_without_the_newer_python(zips, tmp_path):
