@@ -409,7 +409,7 @@ if case("thread"):
 
 blender_addon.unregister()
 print("RESULT " + json.dumps(out), flush=True)
-if bpy.app.version < (5, 0):
+if compat.module_teardown_crashes():
     # bpy 4.2 as a Python module segfaults in its own teardown once an add-on has
     # registered a property with an update callback (see addon_session.py); the result
     # above is what the test reads.
