@@ -45,6 +45,8 @@ def test_the_request_resolves_its_preset_once_and_checks_its_lens():
     assert g.preset.passes.refine == "guided" and g.preset.name == "draft"
     assert g.preset_key == "draft+refine=guided" and r.preset_key == "best"
     assert RefocusRequest(p, 12.0, 0.5, refine="off").preset is PRESETS["default"]
+    # the refinement is read from the resolved settings, however it was asked for
+    assert RefocusRequest(p, 12.0, 0.5, g.preset).preset_key == "draft+refine=guided"
     moved = r.with_lens(focus_disparity=0.25)
     assert (moved.blur_parameter, moved.focus_disparity, moved.preset) == (12.0, 0.25, r.preset)
     with pytest.raises(ValueError, match="unknown preset 'fast'; choose from draft, default"):

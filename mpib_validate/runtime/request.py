@@ -67,11 +67,12 @@ class RefocusRequest:
 
     @property
     def preset_key(self) -> str:
-        """The preset's name, with ``+refine=<mode>`` when a refinement other than off
-        was asked for (what the MPI depends on besides the pixels, ``A`` and the far
-        limit)."""
-        name = self.preset.name
-        return name if self.refine in (None, "off") else f"{name}+refine={self.refine}"
+        """The preset's name, with ``+refine=<mode>`` when its layer settings refine the
+        disparity (what the MPI depends on besides the pixels, ``A`` and the far limit;
+        the disk cache's key). A preset is known by its name: a custom
+        :class:`~mpib_validate.runtime.presets.Preset` needs a name of its own."""
+        name, refine = self.preset.name, self.preset.passes.refine
+        return name if refine == "off" else f"{name}+refine={refine}"
 
     def with_lens(self, blur_parameter: float | None = None,
                   focus_disparity: float | None = None) -> "RefocusRequest":
