@@ -125,6 +125,7 @@ def compute(request: dict, progress=None):
     is written then. Returns the :class:`mpib_validate.runtime.refocus.RefocusResult`."""
     from mpib_validate.runtime.layers.passes import PassError
     from mpib_validate.runtime.refocus import focus_from_pixel, refocus, write_result
+    from mpib_validate.runtime.request import RefocusRequest
 
     report = progress if progress is not None else (lambda fraction: None)
     full = load_render_passes(request["path"], request.get("view_layer"))
@@ -142,7 +143,7 @@ def compute(request: dict, progress=None):
         except ValueError as exc:
             raise PassError(str(exc)) from None
         d_f = focus_from_pixel(passes, x, y)
-    result = refocus(passes, cam.blur_parameter, d_f, request["preset"],
+    result = refocus(RefocusRequest(passes, cam.blur_parameter, d_f, request["preset"]),
                      progress=lambda f: report(0.05 + 0.9 * f))
     result.image = fit.image(result.image, full.depth.shape)
     result.info["camera"] = saved_camera(cam, d_f, request)

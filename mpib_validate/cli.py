@@ -408,18 +408,18 @@ example:
 """
 
 
-def _plan_and_refocus(args, passes, A: float, d_f: float, D, background=None,
-                      refine: str | None = None):
-    """Estimate the memory from the disparity ``D`` (refused past --max-memory-gb),
-    print the plan, and refocus with a progress bar on a terminal (``refine``: the
-    disparity refinement, :func:`mpib_validate.runtime.refocus.build_mpi`)."""
+def _plan_and_refocus(args, request):
+    """Estimate the memory of the request (refused past --max-memory-gb), print the
+    plan, and refocus with a progress bar on a terminal (with --mpi-cache: through the
+    disk cache)."""
     from mpib_validate.runtime import budget
+    from mpib_validate.runtime.layers.cache import DiskCache
     from mpib_validate.runtime.refocus import refocus
 
-    H, W = D.shape
-    est = budget.refocus_estimate(D, A, d_f, args.preset, background=background is not None)
+    H, W = request.passes.depth.shape
+    est = budget.estimate_request(request)
     budget.check(est, _limit(args))
-    print(f"refocusing {W}x{H} ({args.preset}): {est.describe()}", flush=True)
+    print(f"refocusing {W}x{H} ({request.preset.name}): {est.describe()}", flush=True)
     bar = _progress_bar(not args.quiet, "refocus", 100, "%")
 
     def progress(fraction):
@@ -427,18 +427,13 @@ def _plan_and_refocus(args, passes, A: float, d_f: float, D, background=None,
             bar.update(max(0, int(round(100 * fraction)) - bar.n))
 
     try:
-        if args.mpi_cache is None:
-            result = refocus(passes, A, d_f, args.preset, args.far_limit,
-                             background=background, progress=progress, refine=refine)
-        else:
-            from mpib_validate.runtime.layers.cache import refocus_cached
-
-            result, reused, entry = refocus_cached(passes, A, d_f, args.mpi_cache, args.preset,
-                                                   args.far_limit, background, progress,
-                                                   refine)
-            notice = result.info["mpi_cache"].get("notice")
-            if notice:
-                print(f"mpib refocus: {notice}", file=sys.stderr, flush=True)
+        cache = None if args.mpi_cache is None else DiskCache(args.mpi_cache)
+        result = refocus(request, progress, cache)
+        if args.mpi_cache is not None:
+            cached = result.info["mpi_cache"]
+            if cached.get("notice"):
+                print(f"mpib refocus: {cached['notice']}", file=sys.stderr, flush=True)
+            reused, entry = cached["reused"], cached["entry"]
             print(f"{'reused the cached MPI' if reused else 'built the MPI and cached it as'} "
                   f"{entry}" + (" (same inputs, preset, far limit and aperture)" if reused
                                 else ""), flush=True)
@@ -501,6 +496,7 @@ def _refocus_photo(args) -> int:
     from mpib_validate.runtime.io.photo import Encoding, image_format, output_bits, read_disparity, read_photo, write_photo
     from mpib_validate.runtime.layers.passes import depth_to_disparity
     from mpib_validate.runtime.refocus import _depth_channel, focus_from_pixel, passes_from_photo, write_result
+    from mpib_validate.runtime.request import RefocusRequest
     from mpib_validate.runtime.io.exr import read_exr
 
     for opt, given in (("--layered", args.layered), ("--background", args.background),
@@ -581,7 +577,8 @@ def _refocus_photo(args) -> int:
     # a predicted disparity map is refined onto the colour edges unless told otherwise; a
     # depth EXR is taken as a renderer's exact depth
     refine = args.refine or ("guided" if args.disparity is not None else "off")
-    result = _plan_and_refocus(args, passes, A, d_f, passes.disparity, refine=refine)
+    result = _plan_and_refocus(args, RefocusRequest(passes, A, d_f, args.preset, args.far_limit,
+                                                    refine=refine))
     result.info["refine"] = refine
     result.info["camera"] = camera_info
     result.info["encoding"] = photo.encoding.describe()
@@ -616,8 +613,8 @@ def _set_pixel_model(args, passes) -> None:
 
 def cmd_refocus(args) -> int:
     from mpib_validate.runtime.io.atomic import check_outputs
-    from mpib_validate.runtime.layers.passes import depth_to_disparity
     from mpib_validate.runtime.refocus import load_layered_passes, load_passes, read_background, write_result
+    from mpib_validate.runtime.request import RefocusRequest
 
     if _photo_input(args):
         return _refocus_photo(args)
@@ -649,8 +646,8 @@ def cmd_refocus(args) -> int:
     used = _refocus_camera(args, passes)
     A, d_f = used.camera.blur_parameter, used.camera.focus_disparity
     background = read_background(args.background, (H, W)) if args.background else None
-    D = depth_to_disparity(passes.depth, args.far_limit, source=passes.depth_source)
-    result = _plan_and_refocus(args, passes, A, d_f, D, background)
+    result = _plan_and_refocus(args, RefocusRequest(passes, A, d_f, args.preset, args.far_limit,
+                                                    background))
     result.info["camera"] = used.header()  # which camera fields were used, and from where
     written = write_result(args.output, result, preview=not args.no_preview)
     i = result.info

@@ -251,6 +251,7 @@ def blender_cases(out: Path, s: DemoSettings, log=print) -> list[Case]:
 def method_images(case: Case, presets=PRESETS) -> dict:
     """``{method: (rgb (H, W, 3) linear, seconds)}`` on the case's input."""
     from mpib_validate.runtime.refocus import refocus
+    from mpib_validate.runtime.request import RefocusRequest
 
     p = case.passes
     out = {SHARP: (np.asarray(p.colour, np.float32), 0.0)}
@@ -259,9 +260,9 @@ def method_images(case: Case, presets=PRESETS) -> dict:
 
         out[NODE] = defocus(p.colour, p.depth, case.node_camera)
     for name in presets:
-        refocus(p, case.A, case.d_f, name)  # warm-up (kernel caches), untimed
+        refocus(RefocusRequest(p, case.A, case.d_f, name))  # warm-up (kernel caches), untimed
         t0 = time.perf_counter()
-        res = refocus(p, case.A, case.d_f, name)
+        res = refocus(RefocusRequest(p, case.A, case.d_f, name))
         seconds = time.perf_counter() - t0
         # as refocus.write_result writes it: colour times coverage
         out[f"mpib {name}"] = (res.image[..., :3] * res.image[..., 3:4], seconds)

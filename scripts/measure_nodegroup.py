@@ -53,6 +53,7 @@ def score_case(res: dict, fstop: float, focus: float) -> dict:
     from mpib_validate.runtime.io.exr import find_pass, read_exr, rgba_from
     from mpib_validate.metrics import boundaries_from_disparity, occlusion_mask, psnr
     from mpib_validate.runtime.refocus import Passes, refocus
+    from mpib_validate.runtime.request import RefocusRequest
 
     f = res["frames"]["1"]
     img = read_exr(f["path"])
@@ -67,7 +68,7 @@ def score_case(res: dict, fstop: float, focus: float) -> dict:
     lens = {"lens_mm": 100.0, "sensor_width_mm": 36.0, "fstop": fstop, "focus_distance": focus}
     defocused, _ = defocus(sharp, depth.astype(np.float32), lens, timing=False)
     passes = Passes(sharp, depth, "sharp", "depth")
-    numpy_default = refocus(passes, A, d_f, "default").image[..., :3]
+    numpy_default = refocus(RefocusRequest(passes, A, d_f, "default")).image[..., :3]
     D = np.where(depth < 1e9, 1.0 / depth, 0.0)
     mask = occlusion_mask(boundaries_from_disparity(D, 1.0 / A), D, A, d_f)
     ref = np.clip(truth, 0, 1)

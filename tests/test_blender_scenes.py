@@ -171,12 +171,12 @@ def test_default_preset_beats_the_sharp_input_at_boundaries(suite):
     """PSNR_ob against Cycles' depth of field: the refocused EXR (as written) is far
     closer than the sharp input, by more than the truth's own noise could move it."""
     from mpib_validate.runtime.refocus import load_passes, refocus
+    from mpib_validate.runtime.request import RefocusRequest
 
     _, spec, folder = suite
     sc = B.load_scene(folder)
     p = load_passes(folder / "passes.exr")
-    out = BB.premultiplied(refocus(p, p.camera.image["blur_parameter"],
-                                   p.camera.image["focus_disparity"]).image)
+    out = BB.premultiplied(refocus(RefocusRequest(p, p.camera.image["blur_parameter"], p.camera.image["focus_disparity"])).image)
     mask = BB.boundary_mask(sc.depth, sc.meta["A"], sc.meta["d_f"])
     assert 0.05 < mask.mean() < 0.9
     t = np.clip(sc.truth, 0, 1)
@@ -209,8 +209,9 @@ def test_degraded_depth_methods_are_seeded_and_finite(suite):
         assert np.isfinite(a[name][0]).all()
         np.testing.assert_array_equal(a[name][0], b[name][0])
     from mpib_validate.runtime.refocus import refocus
+    from mpib_validate.runtime.request import RefocusRequest
 
-    exact = BB.premultiplied(refocus(p, A, d_f).image)
+    exact = BB.premultiplied(refocus(RefocusRequest(p, A, d_f)).image)
     assert np.abs(a[BB.DEGRADED][0] - exact).max() > 0.05
 
 

@@ -19,6 +19,7 @@ import numpy as np
 from mpib_validate.runtime import budget
 from mpib_validate.runtime.layers.passes import depth_to_disparity
 from mpib_validate.runtime.refocus import Passes, refocus, write_result
+from mpib_validate.runtime.request import RefocusRequest
 
 case, n, A, preset, out = sys.argv[1], int(sys.argv[2]), float(sys.argv[3]), sys.argv[4], sys.argv[5]
 rng = np.random.default_rng(0)
@@ -40,12 +41,13 @@ else:
     colour = rng.random((n, n, 3)).astype(np.float32)
 D = depth_to_disparity(depth)
 df = float(np.median(D))
-est = budget.refocus_estimate(D, A, df, preset)
+request = RefocusRequest(Passes(colour, depth, "c", "d"), A, df, preset)
+est = budget.estimate_request(request)
 rss = lambda: int(open("/proc/self/statm").read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
 # the peak of this process's own memory (ru_maxrss would keep the forking parent's)
 hwm = lambda: 1024 * int(next(l for l in open("/proc/self/status") if l.startswith("VmHWM")).split()[1])
 base = rss()
-res = refocus(Passes(colour, depth, "c", "d"), A, df, preset)
+res = refocus(request)
 write_result(out, res)
 peak = hwm()
 print(json.dumps({"estimate": est.bytes - est.parts["inputs"], "used": peak - base,
@@ -80,18 +82,18 @@ def test_layers_dominate_for_random_depth():
     layers is the bytes of the MPI actually built (256^2; measured within 0.6 %: a
     random pixel may miss a layer's last row or column)."""
     from mpib_validate.runtime.layers.passes import layers_from_passes
-    from mpib_validate.runtime.presets import get_preset
+    from mpib_validate.runtime.presets import PRESETS
 
     rng = np.random.default_rng(0)
     D = 1.0 / rng.uniform(1, 10, (1024, 1024))
-    est = budget.refocus_estimate(D, 50.0, 0.5)
+    est = budget.refocus_estimate(D, 50.0, 0.5, PRESETS["default"])
     assert est.planes == 46
     assert est.largest_part() == "layers"
     small = 1.0 / rng.uniform(1, 10, (256, 256))
     mpi, _ = layers_from_passes(rng.random((256, 256, 3)).astype(np.float32), small, 50.0,
-                                get_preset("default").passes)
+                                PRESETS["default"].passes)
     built = sum(l.nbytes for l in mpi.layers)
-    est_small = budget.refocus_estimate(small, 50.0, 0.5)
+    est_small = budget.refocus_estimate(small, 50.0, 0.5, PRESETS["default"])
     assert est_small.parts["layers"] == pytest.approx(built, rel=0.02)
 
 
@@ -100,15 +102,15 @@ def test_binned_intervals_agree_with_the_exact_ones():
     rng = np.random.default_rng(3)
     D = np.concatenate([np.full(1000, 0.05), rng.uniform(0.3, 0.5, 5000), np.full(10, 0.9)])
     step = 2 * 0.5 / 40.0
-    from mpib_validate.runtime.layers.passes import _content_intervals
+    from mpib_validate.runtime.layers import passes
 
-    exact = _content_intervals(D, step)
-    old = budget.EXACT_INTERVALS_PX
+    exact = passes.content_intervals(D, step)
+    old = passes.EXACT_INTERVALS_PX
     try:
-        budget.EXACT_INTERVALS_PX = 0
-        binned = budget._intervals(D[None, :], step)
+        passes.EXACT_INTERVALS_PX = 0
+        binned = passes.content_intervals(D[None, :], step, exact=False)
     finally:
-        budget.EXACT_INTERVALS_PX = old
+        passes.EXACT_INTERVALS_PX = old
     assert len(binned) == len(exact) == 3
     for (a, b), (c, d) in zip(exact, binned):
         assert c <= a + 1e-12 and d >= b - 1e-12 and d - c <= b - a + step + 1e-12

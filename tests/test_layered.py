@@ -24,6 +24,7 @@ from mpib_validate.runtime.io.exr import read_exr, rgba_from, write_exr
 from mpib_validate.runtime.layers.layered import composite_over, group_disparity, layers_from_layered_passes
 from mpib_validate.runtime.layers.passes import PassesSettings, depth_to_disparity
 from mpib_validate.runtime.refocus import Passes, load_layered_passes, refocus
+from mpib_validate.runtime.request import RefocusRequest
 
 W, H = 64, 48
 LENS_MM, SENSOR_MM, FSTOP, Z_WALL = 100.0, 36.0, 1.0, 3.0
@@ -243,8 +244,8 @@ def test_layered_path_closer_to_cycles_depth_of_field_at_occlusion_boundaries(re
     sp = single_pass(img)
     lp = load_layered_passes(renders["path"])
     assert len(lp.groups) == 3
-    single = refocus(sp, A, D_F, "default")
-    layered = refocus(lp, A, D_F, "default")
+    single = refocus(RefocusRequest(sp, A, D_F, "default"))
+    layered = refocus(RefocusRequest(lp, A, D_F, "default"))
     assert layered.info["groups"] == 3 and np.isfinite(layered.image).all()
     p_single, mask = _psnr_ob(truth, single.image[..., :3] * single.image[..., 3:], sp.depth)
     p_layered, _ = _psnr_ob(truth, layered.image[..., :3] * layered.image[..., 3:], sp.depth, mask)
@@ -284,8 +285,8 @@ def test_a_half_transparent_veil_blurs_as_in_cycles(veil):
     # (the binomial sd of a fraction at 64 spp is 0.0625)
     veil_alpha = lp.groups[1][1]
     assert np.all(np.abs(veil_alpha[veil_alpha > 0.2] - 0.5) < 3 * 0.0625)
-    single = refocus(sp, A, D_F, "default").image
-    layered = refocus(lp, A, D_F, "default").image
+    single = refocus(RefocusRequest(sp, A, D_F, "default")).image
+    layered = refocus(RefocusRequest(lp, A, D_F, "default")).image
     p_single, mask = _psnr_ob(truth, single[..., :3], sp.depth)
     p_layered, _ = _psnr_ob(truth, layered[..., :3], sp.depth, mask)
     print(f"veil: PSNR_ob single pass {p_single:.2f} dB, layered {p_layered:.2f} dB")
@@ -299,7 +300,7 @@ def test_mpib_refocus_reads_the_group_layers(renders, tmp_path, capsys):
     rc = cli.main(["refocus", str(renders["path"]), "-o", str(out), "--blur-parameter", str(A),
                    "--focus-disparity", str(D_F), "--no-preview"])
     assert rc == 0 and "3 depth groups" in capsys.readouterr().out
-    want = refocus(load_layered_passes(renders["path"]), A, D_F, "default").image
+    want = refocus(RefocusRequest(load_layered_passes(renders["path"]), A, D_F, "default")).image
     got = rgba_from(read_exr(out), "")
     np.testing.assert_allclose(got[..., :3], want[..., :3] * want[..., 3:], rtol=1e-6, atol=1e-7)
     # --layered on a file with one view layer: one line, exit 2, nothing written
@@ -523,8 +524,8 @@ def test_what_indirect_only_gets_wrong_refraction_is_blurred_at_the_glass(glass)
         lp = load_layered_passes(g["path"])
         t1 = rgba_from(g["truth"], "ViewLayer.Combined.")[..., :3]
         t2 = rgba_from(g["truth2"], "ViewLayer.Combined.")[..., :3]
-        layered = refocus(lp, A, D_F, "default").image[..., :3]
-        single = refocus(single_pass(g["img"]), A, D_F, "default").image[..., :3]
+        layered = refocus(RefocusRequest(lp, A, D_F, "default")).image[..., :3]
+        single = refocus(RefocusRequest(single_pass(g["img"]), A, D_F, "default")).image[..., :3]
         inside = lp.groups[1][1] >= 1.0
         res[kind] = {"layered": _error_db(layered, t1, t2, inside),
                      "single": _error_db(single, t1, t2, inside)}
@@ -577,7 +578,7 @@ def test_the_world_behind_the_farthest_group_comes_from_its_environment_pass(tmp
     # the world is at disparity 0, the partly covered horizon takes the ground's
     D = group_disparity(far[2], far[3])
     assert np.all(D[:3] == 0.0) and np.allclose(D[3:], 0.25)
-    res = refocus(lp, 4.0, 0.25, "default")  # focus on the ground
+    res = refocus(RefocusRequest(lp, 4.0, 0.25, "default"))  # focus on the ground
     assert np.isfinite(res.image).all()
     np.testing.assert_allclose(res.image[..., 3], 1.0, atol=1e-6)  # opaque in, opaque out
     np.testing.assert_allclose(res.image[0, 0, :3], sky, atol=1e-4)  # the sky far from all

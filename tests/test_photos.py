@@ -251,16 +251,17 @@ def test_side_values_reach_outside_the_band_tiles():
 
 def test_refocus_takes_the_refine_option():
     from mpib_validate.runtime.refocus import Passes, refocus
+    from mpib_validate.runtime.request import RefocusRequest
 
     colour, D = _two_regions()
     pred = np.roll(degrade_disparity(D, 0, blur_px=2.0, down=1, shift_px=0.0, noise=0.0), 2, 1)
     passes = Passes(colour.astype(np.float32), 1.0 / pred, "c", "d")
-    off = refocus(passes, 40.0, 0.1).image
-    on = refocus(passes, 40.0, 0.1, refine="guided").image
+    off = refocus(RefocusRequest(passes, 40.0, 0.1)).image
+    on = refocus(RefocusRequest(passes, 40.0, 0.1, refine="guided")).image
     # focus on the far side: the near red surface blurs by 16 px; moving its edge 2 px
     # changes the image near the edge
     assert np.abs(on - off).max() > 0.01
-    assert np.array_equal(off, refocus(passes, 40.0, 0.1, refine="off").image)
+    assert np.array_equal(off, refocus(RefocusRequest(passes, 40.0, 0.1, refine="off")).image)
 
 
 def test_guided_thin_gives_a_thin_wire_its_disparity_back():

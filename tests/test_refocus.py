@@ -194,17 +194,18 @@ def test_refocus_reports_progress_and_can_be_cancelled(rendered, preset):
     """The progress callback rises from 0 to 1 and does not change the result; raising
     from it stops the work (the add-on's Esc)."""
     from mpib_validate.runtime.refocus import Cancelled, load_passes, refocus
+    from mpib_validate.runtime.request import RefocusRequest
 
     d, scene, res = rendered
     passes = load_passes(d / "trace.exr")
     A, df = scene.camera.blur_parameter, scene.camera.focus_disparity
     seen = []
-    with_progress = refocus(passes, A, df, preset, progress=seen.append)
+    with_progress = refocus(RefocusRequest(passes, A, df, preset), progress=seen.append)
     assert seen[0] < 0.5 and seen[-1] == 1.0 and np.all(np.diff(seen) >= 0), seen
     # every layer reports (so Esc is answered within one layer's blur), after 4 steps of
     # building the layers
     assert len(seen) >= 4 + with_progress.info["planes"]
-    np.testing.assert_array_equal(with_progress.image, refocus(passes, A, df, preset).image)
+    np.testing.assert_array_equal(with_progress.image, refocus(RefocusRequest(passes, A, df, preset)).image)
 
     calls = []
 
@@ -214,7 +215,7 @@ def test_refocus_reports_progress_and_can_be_cancelled(rendered, preset):
             raise Cancelled
 
     with pytest.raises(Cancelled):
-        refocus(passes, A, df, preset, progress=stop_half_way)
+        refocus(RefocusRequest(passes, A, df, preset), progress=stop_half_way)
     assert calls[-1] >= 0.5 and calls[-1] < 1.0
 
 
@@ -263,6 +264,7 @@ def test_the_inputs_pixel_model_picks_the_kernel(rendered, tmp_path):
     see test_kernels), the canonical one 1/6 px^2 more (the bilinear splat's term at this
     radius, 0.163 measured)."""
     from mpib_validate.runtime.refocus import Passes, load_passes, pixel_model_of, refocus
+    from mpib_validate.runtime.request import RefocusRequest
 
     d, scene, res = rendered
     assert load_passes(d / "trace.exr").pixel_model == "texel"
@@ -278,7 +280,7 @@ def test_the_inputs_pixel_model_picks_the_kernel(rendered, tmp_path):
     moments = {}
     for model in ("continuous", "texel"):
         p = Passes(colour, depth, "dot", "flat", pixel_model=model)
-        out = refocus(p, 16.0, 0.25, "default").image
+        out = refocus(RefocusRequest(p, 16.0, 0.25, "default")).image
         assert np.all(out[..., 3] == 1.0)
         moments[model] = _axis_moment(out - 0.1, 20, 20)
     assert moments["continuous"] == pytest.approx(r * r / 4, abs=0.02)

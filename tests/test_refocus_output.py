@@ -11,6 +11,7 @@ from mpib_validate.runtime.layers.passes import (PassesSettings, depth_to_dispar
                                   layers_from_passes)
 from mpib_validate.runtime.layers import fill as _fill
 from mpib_validate.runtime.refocus import Passes, refocus, write_result
+from mpib_validate.runtime.request import RefocusRequest
 
 
 def _ramp_passes(h=48, w=64, transparent_sky=False):
@@ -44,7 +45,7 @@ def test_an_opaque_input_gives_an_opaque_correctly_exposed_output(tmp_path):
     mpi, _ = layers_from_passes(passes.colour, depth_to_disparity(passes.depth), A)
     coverage = C.composite(mpi, A, df)[..., 3]
     assert coverage.min() < 0.99
-    res = refocus(passes, A, df)
+    res = refocus(RefocusRequest(passes, A, df))
     assert np.all(res.image[..., 3] == 1.0)
     assert np.isfinite(res.image).all()
     write_result(tmp_path / "out.exr", res)
@@ -61,14 +62,14 @@ def test_a_transparent_film_keeps_its_alpha():
     alpha changes only through the frame border: 2 % measured at this size, so 5 %)."""
     passes = _ramp_passes(transparent_sky=True)
     A, df = 12.0, 0.15  # the horizon nearly sharp (0.6 px), the box blurred by 9 px
-    res = refocus(passes, A, df)
+    res = refocus(RefocusRequest(passes, A, df))
     a = res.image[..., 3]
     assert a[:5].max() < 1e-3  # sky, farther from the horizon than the blur reaches
     assert np.all(a[30:] > 0.999)
     horizon = a[5:12]
     assert horizon.min() < 0.5 < horizon.max()
     assert abs(a.sum() / passes.alpha.sum() - 1.0) < 0.05
-    opaque = refocus(_ramp_passes(), A, df)
+    opaque = refocus(RefocusRequest(_ramp_passes(), A, df))
     # below the horizon's blur the two agree: the sky's alpha changes nothing there
     np.testing.assert_allclose(res.image[30:, :, :3], opaque.image[30:, :, :3], atol=1e-5)
 
@@ -213,7 +214,7 @@ def test_a_thin_wire_blurs_away_instead_of_leaving_sharp_remnants():
     K = disk_kernel(A * (1.0 - df))
     blurred = signal.fftconvolve(np.pad(cov, 40, mode="edge"), K, mode="same")[40:-40, 40:-40]
     truth = (1 - blurred) * 0.8 + blurred * 0.05
-    out = refocus(passes, A, df).image[..., 0]
+    out = refocus(RefocusRequest(passes, A, df)).image[..., 0]
     err = np.abs(out - truth)[8:-8, 8:-8]
     assert err.max() < 0.28 and err.mean() < 0.011, (err.max(), err.mean())
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,6 +16,7 @@ from mpib_validate.runtime.io.exr import read_exr, write_exr, channels_from_rgba
 from mpib_validate.cards.render_io import write_render
 from mpib_validate.metrics import psnr
 from mpib_validate.runtime.refocus import load_passes, refocus
+from mpib_validate.runtime.request import RefocusRequest
 from mpib_validate.runtime.session import (REUSE_DOWN_TO, RefocusSession, downsample_mpi,
                                    passes_digest, preview_factor)
 
@@ -42,7 +44,7 @@ def test_a_new_focus_recomposites_the_cached_mpi_to_the_same_bits(scene_file):
         got = s.render(d_f, A)
         assert got.info["mpi"] == "cached" and s.builds == 1
         # the same function on the same layers: equal to the last bit
-        assert np.array_equal(got.image, refocus(passes, A, d_f).image)
+        assert np.array_equal(got.image, refocus(RefocusRequest(passes, A, d_f)).image)
     assert s.cache_bytes > 0
 
 
@@ -58,13 +60,13 @@ def test_apertures_reuse_the_mpi_within_its_bounds_and_rebuild_beyond(scene_file
     # pixels unmixed), but the same image within the preset's tolerances: measured
     # 63.1 dB apart on this scene (94.9 dB at 0.9 A, 40.9 dB at the reuse limit 0.5 A);
     # 50 dB leaves room for the rounding of another platform's FFT
-    fresh = refocus(passes, 0.7 * A, d_f).image
+    fresh = refocus(RefocusRequest(passes, 0.7 * A, d_f)).image
     assert psnr(np.clip(fresh[..., :3], 0, 1), np.clip(narrower.image[..., :3], 0, 1)) > 50.0
     too_narrow = s.render(d_f, 0.9 * REUSE_DOWN_TO * A)
     assert too_narrow.info["mpi"] == "built" and s.builds == 2
     wider = s.render(d_f, 1.2 * A)
     assert wider.info["mpi"] == "built" and s.builds == 3
-    assert np.array_equal(wider.image, refocus(passes, 1.2 * A, d_f).image)
+    assert np.array_equal(wider.image, refocus(RefocusRequest(passes, 1.2 * A, d_f)).image)
     exact = RefocusSession(passes, exact_aperture=True)
     exact.render(d_f, A)
     assert exact.render(d_f, 0.7 * A).info["mpi"] == "built"
@@ -338,8 +340,9 @@ def test_cache_refuses_an_entry_that_declares_too_much_memory(scene_file, tmp_pa
     d, cam = scene_file
     passes = load_passes(d / "in.exr")
     folder = tmp_path / "cache"
-    result, reused, entry = C.refocus_cached(passes, cam.blur_parameter, cam.focus_disparity,
-                                             folder)
+    result = refocus(RefocusRequest(passes, cam.blur_parameter, cam.focus_disparity),
+                     cache=C.DiskCache(folder))
+    entry = Path(result.info["mpi_cache"]["entry"])
     H, W = passes.colour.shape[:2]
     margin = 0
     buf = io.BytesIO()

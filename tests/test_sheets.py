@@ -44,7 +44,7 @@ def _reference(sheets, planes, H, W, margin, split, snap, slab):
         parts, col, where = _shares(sh, planes, split, snap, wc)
         shares += [(p, a, cov, col, where, role) for p, a, cov, role in parts]
     K = shares[0][3].shape[1]
-    slab_of = M._slab_of_groups(planes, slab) if split == "additive" else {}
+    slab_of = M.slab_of_groups(planes, slab) if split == "additive" else {}
     group_of = {0: lambda p: 2 * p, 1: lambda p: 2 * p + 1, 2: lambda p: 2 * p - 1}
     # additive: the transmission of the nearer sheets' content in each slab, per sheet
     n_sheets = len(sheets)

@@ -116,6 +116,7 @@ def method_images(sc, exact_samples: int = 1024, layered=None, degraded: bool = 
     from mpib_validate.runtime.layers.passes import depth_to_disparity, layers_from_passes
     from mpib_validate.runtime.presets import PRESETS, get_preset
     from mpib_validate.runtime.refocus import load_layered_passes, load_passes, refocus
+    from mpib_validate.runtime.request import RefocusRequest
 
     from mpib_validate.runtime.io.camera_header import resolve
 
@@ -126,14 +127,14 @@ def method_images(sc, exact_samples: int = 1024, layered=None, degraded: bool = 
     A, d_f = float(cam.blur_parameter), float(cam.focus_disparity)
     out = {}
     for name in PRESETS:
-        refocus(passes, A, d_f, name)  # warm-up (kernel caches), untimed
-        res, seconds = _timed(lambda: refocus(passes, A, d_f, name))
+        refocus(RefocusRequest(passes, A, d_f, name))  # warm-up (kernel caches), untimed
+        res, seconds = _timed(lambda: refocus(RefocusRequest(passes, A, d_f, name)))
         out[f"preset-{name}"] = (premultiplied(res.image), seconds)
         out[f"preset-{name} (normalised)"] = (res.image[..., :3], seconds)
     if layered is not None and Path(layered).is_file():
         lp = load_layered_passes(layered)
-        refocus(lp, A, d_f, "default")  # warm-up, untimed
-        res, seconds = _timed(lambda: refocus(lp, A, d_f, "default"))
+        refocus(RefocusRequest(lp, A, d_f, "default"))  # warm-up, untimed
+        res, seconds = _timed(lambda: refocus(RefocusRequest(lp, A, d_f, "default")))
         out[LAYERED] = (premultiplied(res.image), seconds)
     import importlib.util
 
@@ -178,6 +179,7 @@ def degraded_images(sc, passes, A: float, d_f: float) -> dict:
     from mpib_validate.cards.degrade import degrade_disparity
     from mpib_validate.runtime.layers.passes import depth_to_disparity
     from mpib_validate.runtime.refocus import refocus
+    from mpib_validate.runtime.request import RefocusRequest
 
     D = depth_to_disparity(passes.depth, source=passes.depth_source)
     Dg = degrade_disparity(D, degraded_seed(sc))
@@ -186,13 +188,13 @@ def degraded_images(sc, passes, A: float, d_f: float) -> dict:
     out = {}
     for name, refine in ((DEGRADED, None), (DEGRADED_GUIDED, "guided"),
                          (DEGRADED_THIN, "guided-thin")):
-        res, seconds = _timed(lambda: refocus(pg, A, d_f, "default", refine=refine))
+        res, seconds = _timed(lambda: refocus(RefocusRequest(pg, A, d_f, "default", refine=refine)))
         out[name] = (premultiplied(res.image), seconds)
     # where the loss lies: the exact disparity given back to the guided result on the
     # highlights, the uncertain band, both (the photos suite's decomposition)
     for name, D_o in oracle_disparities(passes.colour, D, Dg, A).items():
         po = replace(passes, depth=disparity_to_depth(D_o), disparity=D_o)
-        res, seconds = _timed(lambda: refocus(po, A, d_f, "default"))
+        res, seconds = _timed(lambda: refocus(RefocusRequest(po, A, d_f, "default")))
         out[name] = (premultiplied(res.image), seconds)
     if importlib.util.find_spec("bpy") is not None:
         from mpib_validate.baselines.defocus_node import defocus

@@ -33,6 +33,7 @@ def focus_pull_timings(cfg) -> dict:
     wall and CPU seconds of each kind of render and their ratios to the full pipeline."""
     
     from mpib_validate.runtime.refocus import load_passes, refocus
+    from mpib_validate.runtime.request import RefocusRequest
     from mpib_validate.runtime.session import RefocusSession
 
     passes = load_passes(cfg["input"])
@@ -45,7 +46,7 @@ def focus_pull_timings(cfg) -> dict:
     steps = FOCUS_STEPS[:max(1, int(cfg.get("repeats", 3)))]
     for k, step in enumerate(steps):
         f = d_f * step
-        kinds = (("full pipeline", lambda: refocus(passes, A, f, preset)),
+        kinds = (("full pipeline", lambda: refocus(RefocusRequest(passes, A, f, preset))),
                  ("new focus (cached MPI)", lambda: session.render(f, A)),
                  ("new f-stop (0.7 A, cached MPI)", lambda: session.render(f, 0.7 * A)),
                  ("quarter-resolution preview", lambda: session.render(f, A, 0.25)),

@@ -90,14 +90,14 @@ def time_refocus(width: int, height: int, preset: str, seed: int = 0) -> dict:
     """One refocus of the generated input: CPU and wall seconds, planes, peak memory
     growth (max RSS of this process, which should be fresh, minus its RSS before)."""
     from mpib_validate.runtime import refocus as R
+    from mpib_validate.runtime.request import RefocusRequest
     from mpib_validate.bench.machine import peak_rss_mb
-    from mpib_validate.runtime.budget import format_bytes, memory_limit, refocus_estimate
+    from mpib_validate.runtime.budget import estimate_request, format_bytes, memory_limit
 
     colour, depth, A, d_f = photo_passes(seed, width, height)
     passes = R.Passes(colour, depth, "generated", "generated", None, None)
-    D = R.depth_to_disparity(depth)
-    est = refocus_estimate(D, A, d_f, preset)
-    del D  # not needed while refocusing (build_mpi makes its own)
+    request = RefocusRequest(passes, A, d_f, preset)
+    est = estimate_request(request)
     if est.bytes > memory_limit():  # as `mpib refocus` would refuse it
         return {"size": f"{width}x{height}", "preset": preset, "planes": est.planes,
                 "estimate_bytes": est.bytes,
@@ -105,7 +105,7 @@ def time_refocus(width: int, height: int, preset: str, seed: int = 0) -> dict:
                            f"{format_bytes(memory_limit())} (half of this machine)"}
     before = _rss_now()
     c0, w0 = time.process_time(), time.perf_counter()
-    res = R.refocus(passes, A, d_f, preset)
+    res = R.refocus(request)
     cpu, wall = time.process_time() - c0, time.perf_counter() - w0
     peak = peak_rss_mb() * 2 ** 20
     return {"size": f"{width}x{height}", "preset": preset, "planes": res.info["planes"],

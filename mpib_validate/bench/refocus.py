@@ -101,10 +101,11 @@ def _hd_worker(cfg) -> dict:
     """Time `mpib refocus` at 1920x1080 on an EXR written beforehand (in-process call of
     the same functions the command runs, EXR read and write included)."""
     from mpib_validate.runtime.refocus import load_passes, refocus, write_result
+    from mpib_validate.runtime.request import RefocusRequest
 
     t0 = time.perf_counter()
     passes = load_passes(cfg["input"])
-    res = refocus(passes, cfg["A"], cfg["d_f"], cfg["preset"])
+    res = refocus(RefocusRequest(passes, cfg["A"], cfg["d_f"], cfg["preset"]))
     write_result(cfg["output"], res)
     seconds = time.perf_counter() - t0
     return {"seconds": seconds, "planes": res.info["planes"],

@@ -7,20 +7,22 @@ values, the camera, the sample count), cheaply, so that the command line can ref
 past a limit the user can raise (``--max-memory-gb``) with one line saying what is
 large, before any work or output.
 
-Refocusing (:func:`refocus_estimate`) follows what ``passes.layers_from_passes`` and
-``composite`` do:
+Refocusing (:func:`refocus_estimate`, :func:`estimate_request`) reads the layer
+builder's plan and follows what ``composite`` does:
 
-- planes: ``adaptive_planes`` over the intervals of the disparity values, spaced
-  ``2 tol / A`` (so the count grows with ``A`` times the disparity range: a colour
-  file read as depth, ``d = 1/Z`` up to 1/min(colour), gives thousands);
+- planes and layers: the builder's :class:`~mpib_validate.runtime.layers.mpi.LayerPlan`
+  of the disparity map (:func:`~mpib_validate.runtime.layers.passes.layer_plan`: its
+  planes are spaced ``2 tol / A``, so the count grows with ``A`` times the disparity
+  range: a colour file read as depth, ``d = 1/Z`` up to 1/min(colour), gives
+  thousands), with the planes each tile and block reaches and the storage tiles of each
+  plane as the plan gives them (:meth:`~mpib_validate.runtime.layers.mpi.LayerPlan.tile_area`:
+  a plane straddling two slabs holds two layers);
 - layers: each plane stores premultiplied RGBA float32 (16 B) over the bounding box
   of its content, or over its occupied 32 px tiles where those cover at most
-  ``TILED_FILL_MAX`` of the box (a thin band of a smooth depth). Every pixel is shared
-  by the two planes around its disparity, and with additive slabs a plane whose two
-  intervals fall in different slabs holds two layers. The boxes are taken on blocks of
-  at most 256 x 256 per image and grown by the occlusion reach ``A (d_near - d_far)``
-  of the 4-neighbour depth jumps in them (the hidden-background fill, which adds the
-  block grown by its reach to a tiled plane);
+  ``TILED_FILL_MAX`` of the box (a thin band of a smooth depth). The boxes are taken on
+  blocks of at most 256 x 256 per image and grown by the occlusion reach
+  ``A (d_near - d_far)`` of the 4-neighbour depth jumps in them (the hidden-background
+  fill, which adds the block grown by its reach to a tiled plane);
 - compositing: each layer padded by its kernel radius ``R = ceil(A |d - d_f|) + 1``
   and blurred by a float32 FFT of its four channels (a tiled layer: in batches of
   windows, :data:`TILED_BLUR_BYTES` each), on up to ``composite.blur_threads()``
@@ -226,60 +228,20 @@ def _presence_extent(s_lo: np.ndarray, s_hi: np.ndarray, n: int, axis: int):
     return first, last
 
 
-def _plane_tile_area(D: np.ndarray, planes: np.ndarray, slab: float | None = None
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    """Pixels of the canvas-aligned storage tiles (:data:`mpi.TILE_PX`) that may hold
-    each plane: a tile holds plane ``k`` when its disparity range reaches the interval
-    around ``d_k`` (every pixel is shared by the two planes around its disparity).
-
-    ``slab`` (disparity; the additive split's ``slab_px / A``): the plane's share of
-    the interval below it and of the one above it are two layers, each with its own
-    tiles, where the two intervals fall in different slabs
-    (:func:`mpi._slab_of_groups`); the plane then stores the tiles of each interval.
-
-    Returns the tile pixels per plane and the number of layers on it (1 or 2)."""
-    from mpib_validate.runtime.layers.mpi import TILE_PX as T, _slab_of_groups
-
-    H, W = D.shape
-    n = len(planes)
-    ny, nx = -(-H // T), -(-W // T)
-    v = np.pad(D, ((0, ny * T - H), (0, nx * T - W)), mode="edge").reshape(ny, T, nx, T)
-    lo, hi = v.min(axis=(1, 3)).ravel(), v.max(axis=(1, 3)).ravel()
-    s_lo = np.clip(np.searchsorted(planes, lo, side="right") - 1, 0, n - 1)
-    s_hi = np.clip(np.searchsorted(planes, hi, side="right"), 0, n - 1)
-    diff = np.bincount(s_lo, minlength=n + 1) - np.bincount(s_hi + 1, minlength=n + 1)
-    union = np.cumsum(diff[:n]).astype(np.float64) * T * T
-    count = np.ones(n, np.int64)
-    if slab is None or n < 2:
-        return union, count
-    # tiles reaching each interval (d_k, d_k+1), k < n - 1
-    i_lo = np.clip(np.searchsorted(planes, lo, side="right") - 1, 0, n - 2)
-    i_hi = np.clip(np.searchsorted(planes, hi, side="left") - 1, 0, n - 2)
-    i_hi = np.maximum(i_hi, i_lo)
-    diff = np.bincount(i_lo, minlength=n) - np.bincount(i_hi + 1, minlength=n)
-    per = np.cumsum(diff[:n - 1]).astype(np.float64) * T * T
-    slab_of = _slab_of_groups(planes, slab)
-    out = union.copy()
-    for k in range(1, n - 1):  # plane k between interval k - 1 (below) and k (above)
-        if slab_of[2 * k - 1] != slab_of[2 * k + 1]:
-            out[k] = per[k - 1] + per[k]
-            count[k] = 2
-    return out, count
-
-
-def _plane_boxes(D: np.ndarray, planes: np.ndarray, A: float, jump: float,
-                 tiles: bool = False, slab: float | None = None):
+def _plane_boxes(D: np.ndarray, plan, A: float, jump: float):
     """Estimated ``(height, width)`` of each plane's content box (see the module
-    docstring); with ``tiles``, also the pixels each plane stores: its tile area
-    (:func:`_plane_tile_area`) where a layer is kept as tiles
-    (:data:`mpi.TILED_FILL_MAX` of its box or less) and nothing grows it (the
-    hidden-background fill behind a depth edge, whose extent is known only as a box),
-    else its box."""
+    docstring) for the builder's ``plan``
+    (:class:`~mpib_validate.runtime.layers.mpi.LayerPlan`) of the disparities ``D``, and
+    the pixels each plane stores: its tile area (:meth:`LayerPlan.tile_area`) where a
+    layer is kept as tiles (:data:`mpi.TILED_FILL_MAX` of its box or less) and nothing
+    grows it (the hidden-background fill behind a depth edge, whose extent is known
+    only as a box), else its box."""
+    from mpib_validate.runtime.layers.mpi import TILED_FILL_MAX
+
     H, W = D.shape
-    n = len(planes)
+    n = plan.plane_count
     lo, hi, b = _blocks(D)
-    s_lo = np.clip(np.searchsorted(planes, lo, side="right") - 1, 0, n - 1)
-    s_hi = np.clip(np.searchsorted(planes, hi, side="right"), 0, n - 1)
+    s_lo, s_hi = plan.reached(lo, hi)
     r0, r1 = _presence_extent(s_lo, s_hi, n, 0)
     c0, c1 = _presence_extent(s_lo, s_hi, n, 1)
     h = np.where(r1 >= r0, np.minimum((r1 - r0 + 1) * b, H), 0)
@@ -303,12 +265,8 @@ def _plane_boxes(D: np.ndarray, planes: np.ndarray, A: float, jump: float,
     g = np.ceil(grow).astype(np.int64)
     h = np.where(h > 0, np.minimum(h + 2 * g, H), 0)
     w = np.where(w > 0, np.minimum(w + 2 * g, W), 0)
-    if not tiles:
-        return h, w
-    from mpib_validate.runtime.layers.mpi import TILED_FILL_MAX
-
     box = h.astype(np.float64) * w
-    area, count = _plane_tile_area(D, planes, slab)
+    area, count = plan.tile_area(D)
     # the fill behind the jumps of a block lands on that block's planes, within its
     # reach: the block grown by it on every side
     sel = reach > 0
@@ -361,44 +319,6 @@ def _edge_fraction(D: np.ndarray, jump: float) -> float:
     return float(edge.mean())
 
 
-#: Up to this many pixels the content intervals are found exactly (a sort of the
-#: values, as the layer builder does); beyond, on bins one plane step wide (an O(n)
-#: count that can merge two intervals less than two steps apart).
-EXACT_INTERVALS_PX = 1 << 22
-
-
-def _intervals(D: np.ndarray, step: float) -> list[tuple[float, float]]:
-    from mpib_validate.runtime.layers.passes import _content_intervals
-
-    v = D.ravel()
-    if v.size <= EXACT_INTERVALS_PX:
-        return _content_intervals(v, step)
-    lo, hi = float(v.min()), float(v.max())
-    b = ((v - lo) / step).astype(np.int64)
-    n = int(b.max()) + 1
-    ids = np.flatnonzero(np.bincount(b, minlength=n)) if n <= 1 << 24 else np.unique(b)
-    breaks = np.flatnonzero(np.diff(ids) > 1)
-    starts = ids[np.concatenate([[0], breaks + 1])]
-    ends = ids[np.concatenate([breaks, [ids.size - 1]])]
-    return [(lo + s * step, min(lo + (e + 1) * step, hi)) for s, e in zip(starts, ends)]
-
-
-def _plane_placement(D: np.ndarray, A: float, settings) -> np.ndarray:
-    """The planes ``layers_from_passes`` places for disparities ``D`` (an upper bound:
-    its content is a subset of these values)."""
-    from mpib_validate.runtime.layers.mpi import adaptive_planes, plane_spacing, uniform_planes
-
-    if settings.planes == "uniform":
-        return uniform_planes(settings.n_uniform, max(float(D.max()), 1e-9) * (1 + 1e-9))
-    step = plane_spacing(A, settings.tolerance_px)
-    intervals = _intervals(D, step)
-    count = sum(1 if hi <= lo else math.ceil(min((hi - lo) / step, 1e300)) + 1
-                for lo, hi in intervals)
-    if count > MAX_PLANES_PLACED:
-        return count
-    return adaptive_planes(intervals, A, settings.tolerance_px)
-
-
 def _fast_len(n: int) -> int:
     from scipy import fft
 
@@ -446,39 +366,50 @@ def _blur_bytes(h: int, w: int, rho: float, H: int, W: int, composite) -> tuple[
     return work, 16 * oh * ow, 9 * taps
 
 
+def estimate_request(request, threads: int | None = None) -> Estimate:
+    """Estimated peak memory of :func:`mpib_validate.runtime.refocus.refocus` of a
+    :class:`~mpib_validate.runtime.request.RefocusRequest` (:func:`refocus_estimate` of its
+    disparity, ``A``, ``d_f`` and preset, with its background render if any)."""
+    from mpib_validate.runtime.layers.passes import passes_disparity
+
+    D = passes_disparity(request.passes, request.far_limit)
+    return refocus_estimate(D, request.blur_parameter, request.focus_disparity,
+                            request.preset, background=request.background is not None,
+                            threads=threads)
+
+
 def refocus_estimate(disparity: np.ndarray, blur_parameter: float, focus_disparity: float,
-                     preset: str = "default", background: bool = False,
+                     preset, background: bool = False,
                      threads: int | None = None) -> Estimate:
     """Estimated peak memory of ``refocus.refocus`` on a disparity map (1/scene-unit,
     0 = infinitely far) with the blur parameter ``A`` (px per unit disparity), focus
-    ``d_f`` and a preset's settings, blurring on ``threads`` threads (default: as many
-    as the compositor uses here, ``composite.blur_threads()``). Costs a few passes over
-    the disparity."""
+    ``d_f`` and a preset's settings (a :class:`~mpib_validate.runtime.presets.Preset`),
+    blurring on ``threads`` threads (default: as many as the compositor uses here,
+    ``composite.blur_threads()``). Costs a few passes over the disparity."""
     from mpib_validate.runtime.compositor.composite import blur_threads
     from mpib_validate.runtime.compositor.kernels import KERNEL_CACHE_BYTES
-    from mpib_validate.runtime.presets import get_preset
+    from mpib_validate.runtime.layers.passes import layer_plan
 
     threads = blur_threads() if threads is None else max(1, int(threads))
     D = np.asarray(disparity, np.float64)
     H, W = D.shape
     A = float(blur_parameter)
-    p = get_preset(preset)
+    p = preset
     px = H * W
-    planes = _plane_placement(D, A, p.passes)
+    # the builder's plan for these disparities (an upper bound: its content is a subset
+    # of these values)
+    plan = layer_plan(D, A, p.passes, exact=False, max_planes=MAX_PLANES_PLACED)
+    n_planes = plan.plane_count
     largest = float(A * max(abs(float(D.max()) - focus_disparity),
                             abs(float(D.min()) - focus_disparity)))
-    if isinstance(planes, int):  # too many to place: bookkeeping, one full-frame blur
-        n_planes = planes
+    if plan.planes is None:  # too many to place: bookkeeping, one full-frame blur
         rho = np.array([largest])
         hs, ws = np.array([H]), np.array([W])
         as_tiles = np.array([False])
         layers = PLANE_BYTES * n_planes + 16 * px
     else:
-        n_planes = len(planes)
-        rho = A * (planes - focus_disparity)
-        slab = p.passes.slab_px / A if p.passes.split == "additive" else None
-        hs, ws, tiled = _plane_boxes(D, planes, A, p.passes.jump_px / A, tiles=True,
-                                     slab=slab)
+        rho = A * (plan.planes - focus_disparity)
+        hs, ws, tiled = _plane_boxes(D, plan, A, p.passes.jump_px / A)
         layers = int(16 * np.sum(tiled)
                      ) + PLANE_BYTES * n_planes
         as_tiles = tiled < hs.astype(np.float64) * ws
@@ -517,7 +448,7 @@ def refocus_estimate(disparity: np.ndarray, blur_parameter: float, focus_dispari
     phases = (edges_phase, cut + layers,
               layers + parts["blurs"] + parts["kernel cache"] + acc,
               parts["writing"] + 16 * px)
-    return Estimate(f"refocusing {W}x{H} ({preset})", parts, planes=int(n_planes),
+    return Estimate(f"refocusing {W}x{H} ({p.name})", parts, planes=int(n_planes),
                     largest_radius_px=largest, peak=parts["inputs"] + max(phases))
 
 

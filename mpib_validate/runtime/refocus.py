@@ -31,8 +31,9 @@ from mpib_validate.runtime.io.camera_header import HeaderCamera, read_camera
 from mpib_validate.runtime.compositor.composite import render_subapertures
 from mpib_validate.runtime.io.exr import ExrError, find_pass, read_exr, rgba_from
 from mpib_validate.runtime.layers.layered import composite_over, group_disparity, layers_from_layered_passes
-from mpib_validate.runtime.layers.passes import DEFAULT_FAR_LIMIT, PassError, depth_to_disparity, layers_from_passes
-from mpib_validate.runtime.presets import get_preset
+from mpib_validate.runtime.layers.passes import (DEFAULT_FAR_LIMIT, PassError, depth_to_disparity, layers_from_passes,
+                                                passes_disparity)
+from mpib_validate.runtime.request import RefocusRequest
 
 
 @dataclass
@@ -85,14 +86,6 @@ def pixel_model_of(header: dict) -> str:
         if isinstance(meta, dict) and isinstance(meta.get("cards"), list):
             return "texel"
     return "continuous"
-
-
-def passes_disparity(passes: Passes, far_limit: float = DEFAULT_FAR_LIMIT) -> np.ndarray:
-    """The disparity of the passes: the one given (:attr:`Passes.disparity`), else
-    :func:`~mpib_validate.runtime.layers.passes.depth_to_disparity` of the depth."""
-    if passes.disparity is not None:
-        return np.asarray(passes.disparity, np.float64)
-    return depth_to_disparity(passes.depth, far_limit, source=passes.depth_source)
 
 
 def view_layers(img) -> list[str]:
@@ -340,17 +333,9 @@ def read_background(path, shape, far_limit: float = DEFAULT_FAR_LIMIT):
     return rgba, rgba[..., 3] > 0.5, disparity
 
 
-def _check_camera(blur_parameter: float, focus_disparity: float) -> None:
-    if not (blur_parameter > 0) or not math.isfinite(blur_parameter):
-        raise PassError(f"the blur parameter must be finite and > 0 (a zero aperture has no "
-                        f"defocus), got {blur_parameter}")
-    if not (focus_disparity >= 0) or not math.isfinite(focus_disparity):
-        raise PassError(f"the focus disparity must be finite and >= 0, got {focus_disparity}")
-
-
 @dataclass
 class BuiltMPI:
-    """What :func:`build_mpi` makes of the passes: the MPI, whether the output is opaque
+    """What :func:`build_mpi` makes of a request: the MPI, whether the output is opaque
     (no film channel), the disparities the input holds (for the largest blur radius),
     the builder's info and the ``A`` it was built for. None of it depends on the focus."""
 
@@ -363,21 +348,15 @@ class BuiltMPI:
     pixel_model: str = "continuous"
 
 
-def build_mpi(passes: Passes, blur_parameter: float, preset: str = "default",
-              far_limit: float = DEFAULT_FAR_LIMIT, progress=None,
-              background=None, refine: str | None = None) -> BuiltMPI:
-    """The focus-independent half of :func:`refocus`: the MPI of the passes for the blur
-    parameter ``A`` (px per unit disparity; it sets the plane spacing ``2 tol / A``, the
-    edge threshold and how far behind each edge the background is filled).
-
-    ``refine``: ``"guided"`` (or ``"guided-thin"``) for a predicted (monocular)
-    disparity, whose edges are then moved onto the colour edges
-    (:mod:`mpib_validate.runtime.layers.refine`); None or ``"off"`` (the preset's setting, off in
-    every preset) for a renderer's exact depth."""
-    _check_camera(blur_parameter, 0.0)
-    p = get_preset(preset)
-    if refine is not None:
-        p = dataclasses.replace(p, passes=dataclasses.replace(p.passes, refine=refine))
+def build_mpi(request: RefocusRequest, progress=None) -> BuiltMPI:
+    """The focus-independent half of :func:`refocus`: the MPI of ``request.passes`` for
+    the blur parameter ``A`` (px per unit disparity; it sets the plane spacing
+    ``2 tol / A``, the edge threshold and how far behind each edge the background is
+    filled), with the request's layer settings (its preset's, with its refinement:
+    ``"guided"`` or ``"guided-thin"`` moves a predicted disparity's edges onto the
+    colour edges, :mod:`mpib_validate.runtime.layers.refine`) and background render."""
+    passes, A, far_limit = request.passes, request.blur_parameter, request.far_limit
+    settings, background = request.preset.passes, request.background
     D = passes_disparity(passes, far_limit)
     # The film alpha travels as a fourth colour channel (premultiplied like the colour),
     # so the output's alpha is its normalised blur: what the refocused view covers. An
@@ -393,31 +372,34 @@ def build_mpi(passes: Passes, blur_parameter: float, preset: str = "default",
         groups = [(g[0], g[1], group_disparity(g[2], g[-1] if len(g) > 3 else g[1], far_limit,
                                                f"{passes.depth_source} group {k}"))
                   for k, g in enumerate(passes.groups)]
-        mpi, info = layers_from_layered_passes(groups, blur_parameter, p.passes, progress=progress)
+        mpi, info = layers_from_layered_passes(groups, A, settings, progress=progress)
         opaque = mpi.channels == 4
         D = np.concatenate([g[2][g[1] > 0] for g in groups] + [D.ravel()])
     else:
         opaque = film is None or bool(np.all(film >= 1.0))
         colour = passes.colour if opaque else np.concatenate(
             [passes.colour, np.clip(film, 0.0, 1.0)[..., None]], axis=-1)
-        mpi, info = layers_from_passes(colour, D, blur_parameter, p.passes,
+        mpi, info = layers_from_passes(colour, D, A, settings,
                                        background=background, progress=progress)
     # only the range is read (the largest blur radius), as a cached entry keeps it: the
     # full map would hold 8 B per pixel through the compositing
     return BuiltMPI(mpi, opaque, np.array([float(D.min()), float(D.max())]), info,
-                    float(blur_parameter), passes.pixel_model)
+                    float(A), passes.pixel_model)
 
 
-def render_built(built: BuiltMPI, blur_parameter: float, focus_disparity: float,
-                 preset: str = "default", progress=None) -> np.ndarray:
+def render_built(built: BuiltMPI, request: RefocusRequest, progress=None,
+                 scale: int = 1) -> np.ndarray:
     """The focus-dependent half of :func:`refocus`: Eq. 1 (or the preset's middle
-    setting) on ``built.mpi`` at ``A``, ``d_f``, as ``(H, W, 4)`` float32 straight colour
-    and alpha (see :class:`RefocusResult`). ``A`` is in pixels of ``built.mpi``."""
-    p = get_preset(preset)
+    setting) on ``built.mpi`` at the request's ``d_f`` and ``A / scale`` (``built.mpi``
+    at ``1/scale`` of the request's resolution per axis: a blur radius of ``A |d - d_f|``
+    full-resolution pixels is ``A |d - d_f| / scale`` of its pixels), as ``(H, W, 4)``
+    float32 straight colour and alpha (see :class:`RefocusResult`)."""
+    p = request.preset
+    A = request.blur_parameter if scale == 1 else request.blur_parameter / scale
     settings = p.composite
     if settings.kernel == "canonical":  # the input's pixel model picks the kernel
         settings = dataclasses.replace(settings, kernel=PIXEL_MODELS[built.pixel_model])
-    img = render_subapertures(built.mpi, blur_parameter, focus_disparity, p.subapertures,
+    img = render_subapertures(built.mpi, A, request.focus_disparity, p.subapertures,
                               settings, progress=progress)
     covered = img[..., 3] > 0
     if built.opaque:  # alpha 1 where covered: the colour itself there, 0 elsewhere
@@ -433,49 +415,53 @@ def render_built(built: BuiltMPI, blur_parameter: float, focus_disparity: float,
     return out
 
 
-def result_info(passes: Passes, built: BuiltMPI, preset: str, blur_parameter: float,
-                focus_disparity: float, seconds: float) -> dict:
+def result_info(request: RefocusRequest, built: BuiltMPI, seconds: float) -> dict:
     """The ``info`` of a :class:`RefocusResult` (written into the output's header)."""
+    passes, A, d_f = request.passes, request.blur_parameter, request.focus_disparity
     D, info = built.disparity, built.info
-    radius = blur_parameter * max(abs(float(D.max()) - focus_disparity),
-                                  abs(float(D.min()) - focus_disparity))
+    radius = A * max(abs(float(D.max()) - d_f), abs(float(D.min()) - d_f))
     return {
-        "preset": preset, "planes": info.planes, "largest_radius_px": radius,
+        "preset": request.preset.name, "planes": info.planes, "largest_radius_px": radius,
         "fill_fraction": info.fill_fraction, "edge_fraction": info.edge_fraction,
-        "blur_parameter": blur_parameter, "focus_disparity": focus_disparity,
+        "blur_parameter": A, "focus_disparity": d_f,
         "seconds": seconds, "layers_seconds": info.seconds,
         "colour": passes.colour_source, "depth": passes.depth_source,
         "pixel_model": built.pixel_model,
         "groups": 1 if passes.groups is None else len(passes.groups)}
 
 
-def refocus(passes: Passes, blur_parameter: float, focus_disparity: float,
-            preset: str = "default", far_limit: float = DEFAULT_FAR_LIMIT,
-            progress=None, background=None, refine: str | None = None) -> RefocusResult:
-    """Build the MPI from the passes (:func:`build_mpi`) and render it with the preset's
-    settings (:func:`render_built`). To refocus one picture many times, keep the MPI:
-    :class:`mpib_validate.runtime.session.RefocusSession`.
+def split_progress(progress):
+    """``(first, second)``: ``progress`` mapped onto [0, 0.5] (the layers) and [0.5, 1]
+    (the compositing); ``(None, None)`` without one."""
+    if progress is None:
+        return None, None
+    return (lambda f: progress(0.5 * f)), (lambda f: progress(0.5 + 0.5 * f))
 
-    ``refine``: the disparity refinement for a predicted disparity (see
-    :func:`build_mpi`); None keeps the preset's (off).
 
-    ``background``: optional ``(colour, valid)`` of what lies behind the foreground (see
-    :func:`read_background`); it replaces the hidden-background fill where valid.
+def refocus(request: RefocusRequest, progress=None, cache=None) -> RefocusResult:
+    """The pipeline: the MPI of the request (:func:`build_mpi`), or the one ``cache``
+    keeps for it, rendered at its focus (:func:`render_built`), and its
+    :func:`result_info`.
+
+    ``cache``: None (build), or where the MPI is kept: an object with
+    ``fetch(request, progress) -> (BuiltMPI, info)`` whose info is added to the result's
+    (:class:`mpib_validate.runtime.layers.cache.DiskCache`, a folder of MPIs, adds
+    ``mpi_cache``; :class:`mpib_validate.runtime.session.RefocusSession`, in memory, adds
+    ``mpi``). To refocus one picture many times, keep the MPI in a session.
 
     ``progress(fraction)``, if given, is called as the work goes on (layers up to 0.5,
     then compositing); raising from it stops the work, e.g. :class:`Cancelled`.
     """
-    _check_camera(blur_parameter, focus_disparity)
-    get_preset(preset)
     t0 = time.perf_counter()
-    first = second = None
-    if progress is not None:
-        first = lambda f: progress(0.5 * f)  # noqa: E731
-        second = lambda f: progress(0.5 + 0.5 * f)  # noqa: E731
-    built = build_mpi(passes, blur_parameter, preset, far_limit, first, background, refine)
-    img = render_built(built, blur_parameter, focus_disparity, preset, second)
-    return RefocusResult(img, result_info(passes, built, preset, blur_parameter,
-                                          focus_disparity, time.perf_counter() - t0))
+    first, second = split_progress(progress)
+    if cache is None:
+        built, extra = build_mpi(request, first), {}
+    else:
+        built, extra = cache.fetch(request, first)
+    img = render_built(built, request, second)
+    info = result_info(request, built, time.perf_counter() - t0)
+    info.update(extra)
+    return RefocusResult(img, info)
 
 
 def focus_from_pixel(passes: Passes, x: int, y: int, far_limit: float = DEFAULT_FAR_LIMIT) -> float:

@@ -39,6 +39,7 @@ each render then rebuilds it (as :func:`refocus` does), and ``info["mpi"]`` says
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import threading
@@ -49,10 +50,10 @@ import numpy as np
 
 from mpib_validate.runtime.layers.mpi import MPI, Layer
 from mpib_validate.runtime.layers.passes import DEFAULT_FAR_LIMIT
-from mpib_validate.runtime.presets import get_preset
 from mpib_validate.runtime.layers.cache import passes_digest
-from mpib_validate.runtime.refocus import (BuiltMPI, Passes, RefocusResult, _check_camera, build_mpi,
-                                   render_built, result_info)
+from mpib_validate.runtime.refocus import (BuiltMPI, Passes, RefocusResult, build_mpi,
+                                           render_built, result_info, split_progress)
+from mpib_validate.runtime.request import RefocusRequest
 
 #: A cached MPI built for ``A_b`` is reused down to ``A = REUSE_DOWN_TO * A_b``; below
 #: that it holds more than twice the planes the narrower aperture needs (slower to
@@ -239,12 +240,15 @@ def mpi_bytes(mpi: MPI | None) -> int:
 
 class RefocusSession:
     """One picture's passes with their MPI kept between renders (see the module
-    docstring for what is reused and with which error bound).
+    docstring for what is reused and with which error bound): the memory cache of
+    :func:`mpib_validate.runtime.refocus.refocus` (``refocus(request, cache=session)``
+    for a request of this session's :meth:`request`), with previews.
 
     Args:
         passes: from :func:`mpib_validate.runtime.refocus.load_passes` (or the layered loader).
-        preset: the quality preset (:mod:`mpib_validate.runtime.presets`).
-        far_limit, background: as for :func:`mpib_validate.runtime.refocus.refocus`.
+        preset, far_limit, background, refine: as for
+            :class:`~mpib_validate.runtime.request.RefocusRequest` (the preset a
+            :class:`~mpib_validate.runtime.presets.Preset` or its name, looked up once here).
         stamps: the input files' :func:`file_stamps`, so that :meth:`is_current` can
             tell when they changed (:meth:`from_files` fills it in).
         exact_aperture: rebuild the MPI whenever ``A`` changes (every result then
@@ -252,15 +256,14 @@ class RefocusSession:
         max_cache_bytes: the most memory the kept MPI and its previews may hold.
     """
 
-    def __init__(self, passes: Passes, preset: str = "default",
+    def __init__(self, passes: Passes, preset="default",
                  far_limit: float = DEFAULT_FAR_LIMIT, background=None, stamps: tuple = (),
                  exact_aperture: bool = False,
-                 max_cache_bytes: int = DEFAULT_MAX_CACHE_BYTES):
-        get_preset(preset)
-        self.passes = passes
-        self.preset = preset
-        self.far_limit = far_limit
-        self.background = background
+                 max_cache_bytes: int = DEFAULT_MAX_CACHE_BYTES, refine: str | None = None):
+        # the request this session serves, at a placeholder lens (A = 1, d_f = 0):
+        # every render gives its own (:meth:`request`)
+        self._template = RefocusRequest(passes, 1.0, 0.0, preset, far_limit, background,
+                                        refine)
         self.stamps = tuple(stamps)
         self.exact_aperture = exact_aperture
         self.max_cache_bytes = int(max_cache_bytes)
@@ -268,6 +271,23 @@ class RefocusSession:
         self._previews: dict[int, BuiltMPI] = {}
         self._lock = threading.Lock()
         self.builds = 0  # MPI builds this session has run
+
+    @property
+    def passes(self) -> Passes:
+        return self._template.passes
+
+    @property
+    def preset(self):
+        """The resolved :class:`~mpib_validate.runtime.presets.Preset`."""
+        return self._template.preset
+
+    @property
+    def far_limit(self) -> float:
+        return self._template.far_limit
+
+    def request(self, focus_disparity: float, blur_parameter: float) -> RefocusRequest:
+        """The request of a render of this session's picture at ``d_f`` and ``A``."""
+        return self._template.with_lens(blur_parameter, focus_disparity)
 
     @classmethod
     def from_files(cls, path, depth_path=None, view_layer=None, **kwargs) -> "RefocusSession":
@@ -324,8 +344,7 @@ class RefocusSession:
         with self._lock:
             if self._reusable(blur_parameter):
                 return self._built, "cached"
-            built = build_mpi(self.passes, blur_parameter, self.preset, self.far_limit,
-                              progress, self.background)
+            built = build_mpi(self._template.with_lens(blur_parameter), progress)
             self.builds += 1
             self._built = None
             self._previews.clear()
@@ -335,6 +354,20 @@ class RefocusSession:
                                f"{self.max_cache_bytes / 2**30:.2f} GiB)")
             self._built = built
             return built, "built"
+
+    def _owns(self, request: RefocusRequest) -> bool:
+        t = self._template
+        return (request.passes is t.passes and request.preset == t.preset
+                and request.far_limit == t.far_limit and request.background is t.background)
+
+    def fetch(self, request: RefocusRequest, progress=None):
+        """The cache protocol of :func:`mpib_validate.runtime.refocus.refocus`:
+        ``(built, {"mpi": how})`` for a request of this session (:meth:`request`)."""
+        if not self._owns(request):
+            raise ValueError("the request is not this session's (other passes, preset, far "
+                             "limit or background): make it with RefocusSession.request")
+        built, how = self.mpi_for(request.blur_parameter, progress)
+        return built, {"mpi": how}
 
     def _preview(self, built: BuiltMPI, s: int) -> BuiltMPI:
         if s == 1:
@@ -358,20 +391,16 @@ class RefocusSession:
         ``mpi_blur_parameter`` (``A_b``), ``scale``, ``composite_seconds`` and
         ``cache_bytes``. ``progress(fraction)`` may raise to cancel, as for
         :func:`refocus`."""
-        _check_camera(blur_parameter, focus_disparity)
+        request = self.request(focus_disparity, blur_parameter)
         s = preview_factor(scale)
         t0 = time.perf_counter()
-        first = second = None
-        if progress is not None:
-            first = lambda f: progress(0.5 * f)  # noqa: E731
-            second = lambda f: progress(0.5 + 0.5 * f)  # noqa: E731
+        first, second = split_progress(progress)
         built, how = self.mpi_for(blur_parameter, first)
         target = self._preview(built, s)
         t1 = time.perf_counter()
-        img = render_built(target, blur_parameter / s, focus_disparity, self.preset, second)
+        img = render_built(target, request, second, scale=s)
         t2 = time.perf_counter()
-        info = result_info(self.passes, built, self.preset, blur_parameter, focus_disparity,
-                           t2 - t0)
+        info = result_info(request, built, t2 - t0)
         info.update({"mpi": how, "mpi_blur_parameter": built.blur_parameter, "scale": 1.0 / s,
                      "composite_seconds": t2 - t1, "cache_bytes": self.cache_bytes})
         return RefocusResult(img, info)
@@ -384,18 +413,15 @@ class RefocusSession:
         cost; not kept. It shows the same focus as :meth:`render` at ``scale`` but from
         coarser layers (edges placed to the block, thin structures may drop out); later
         previews come from the kept MPI."""
-        _check_camera(blur_parameter, focus_disparity)
+        request = self.request(focus_disparity, blur_parameter)
         s = preview_factor(scale)
         t0 = time.perf_counter()
-        small = subsample_passes(self.passes, s)
-        first = second = None
-        if progress is not None:
-            first = lambda f: progress(0.5 * f)  # noqa: E731
-            second = lambda f: progress(0.5 + 0.5 * f)  # noqa: E731
-        built = build_mpi(small, blur_parameter / s, self.preset, self.far_limit, first)
-        img = render_built(built, blur_parameter / s, focus_disparity, self.preset, second)
-        info = result_info(small, built, self.preset, blur_parameter, focus_disparity,
-                           time.perf_counter() - t0)
+        small = dataclasses.replace(request, passes=subsample_passes(self.passes, s),
+                                    background=None)
+        first, second = split_progress(progress)
+        built = build_mpi(small.with_lens(blur_parameter / s), first)
+        img = render_built(built, small, second, scale=s)
+        info = result_info(small, built, time.perf_counter() - t0)
         info.update({"mpi": "quick (subsampled passes)", "mpi_blur_parameter": blur_parameter,
                      "scale": 1.0 / s, "composite_seconds": time.perf_counter() - t0,
                      "cache_bytes": self.cache_bytes})

@@ -184,12 +184,13 @@ def fresh_refocus(sc, pixel=None):
     focus pixel): no session, no cache."""
     from mpib_validate.runtime.camera import blender_camera
     from mpib_validate.runtime.refocus import focus_from_pixel, load_passes, refocus
+    from mpib_validate.runtime.request import RefocusRequest
 
     request = ops_mod.prepare(sc, sc.mpib.last_passes, "fresh", save=None)
     cam = blender_camera(**request["camera"])
     passes = load_passes(sc.mpib.last_passes)
     d_f = focus_from_pixel(passes, *pixel) if pixel else cam.focus_disparity
-    return refocus(passes, cam.blur_parameter, d_f, sc.mpib.preset).image
+    return refocus(RefocusRequest(passes, cam.blur_parameter, d_f, sc.mpib.preset)).image
 
 
 def pull_record(result, pixel=None):

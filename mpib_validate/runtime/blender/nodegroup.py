@@ -229,7 +229,7 @@ def slabs_for(disparities, blur_parameter: float, slab_px: float = SLAB_PX) -> t
     content on the nearest slice: consecutive ones form one slab while its disparity
     span stays within ``slab_px / A`` (a
     blur-radius span of ``slab_px`` pixels at any focus; as
-    :func:`mpib_validate.runtime.layers.mpi._slab_of_groups`). ``slab_px = 0``: every interval
+    :func:`mpib_validate.runtime.layers.mpi.slab_of_groups`). ``slab_px = 0``: every interval
     alone."""
     d = np.asarray(disparities, np.float64)
     out, s, start = [], -1, 0.0
@@ -295,11 +295,11 @@ def place_slices(depth: np.ndarray, blur_parameter: float, tolerance_px: float =
     """Slice disparities (far to near) for the depth present in a render: the content
     intervals of its disparity ``1/Z`` (gaps wider than one plane step split them; depth
     at or beyond ``far_limit`` is at infinity) through :func:`slices_for_intervals`."""
-    from mpib_validate.runtime.layers.passes import DEFAULT_FAR_LIMIT, _content_intervals, depth_to_disparity
+    from mpib_validate.runtime.layers.passes import DEFAULT_FAR_LIMIT, content_intervals, depth_to_disparity
 
     D = depth_to_disparity(depth, DEFAULT_FAR_LIMIT if far_limit is None else far_limit)
     values = np.unique(np.round(D, 12))
-    return slices_for_intervals(lambda step: _content_intervals(values, step), blur_parameter,
+    return slices_for_intervals(lambda step: content_intervals(values, step), blur_parameter,
                                 tolerance_px, max_slices)
 
 

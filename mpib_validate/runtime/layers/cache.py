@@ -212,44 +212,43 @@ def store(folder, key: str, built) -> list[Path]:
     return [npz, meta]
 
 
-def refocus_cached(passes, blur_parameter: float, focus_disparity: float, folder,
-                   preset: str = "default", far_limit: float | None = None, background=None,
-                   progress=None, refine: str | None = None):
-    """:func:`mpib_validate.runtime.refocus.refocus` with the MPI taken from, or added to, the
-    cache in ``folder``. Returns ``(result, reused, entry)``: the result (equal to a
-    fresh refocus), whether the MPI came from the cache, and its ``.npz`` path."""
-    import time
+class DiskCache:
+    """The MPIs of :func:`mpib_validate.runtime.refocus.refocus` kept in ``folder``: pass
+    one as its ``cache`` (``refocus(request, cache=DiskCache(folder))``). The result equals a fresh refocus to the last bit; its info gains
+    ``mpi_cache``: the entry's ``.npz`` path, whether the MPI came from it, and a
+    ``notice`` when an entry was not used (see the module docstring)."""
 
-    from mpib_validate.runtime.layers.passes import DEFAULT_FAR_LIMIT
-    from mpib_validate.runtime.refocus import (RefocusResult, _check_camera, build_mpi, render_built,
-                                       result_info)
+    def __init__(self, folder):
+        self.folder = Path(folder)
 
-    far_limit = DEFAULT_FAR_LIMIT if far_limit is None else far_limit
-    _check_camera(blur_parameter, focus_disparity)
-    t0 = time.perf_counter()
-    # the refinement changes the MPI: it is part of the preset's name in the key
-    named = preset if refine in (None, "off") else f"{preset}+refine={refine}"
-    key = cache_key(passes_digest(passes, background), named, far_limit, blur_parameter)
-    frame = passes.colour.shape[:2]
-    channels = None
-    if passes.groups is None:  # a film alpha adds a fifth channel (refocus.build_mpi)
-        channels = 4 if passes.alpha is None or bool(np.all(passes.alpha >= 1.0)) else 5
-    built, notice = load(folder, key, frame, channels)
-    reused = built is not None
-    second = None if progress is None else (lambda f: progress(0.5 + 0.5 * f))  # noqa: E731
-    if built is None:
-        first = None if progress is None else (lambda f: progress(0.5 * f))  # noqa: E731
-        built = build_mpi(passes, blur_parameter, preset, far_limit, first, background,
-                          refine)
-        if any(p.exists() and not p.is_file() for p in entry_paths(folder, key)):
-            notice = (f"MPI cache entry '{entry_paths(folder, key)[0]}' is not a regular file; "
-                      f"left as it is, the MPI is not cached")
-        else:
-            store(folder, key, built)
-    img = render_built(built, blur_parameter, focus_disparity, preset, second)
-    info = result_info(passes, built, preset, blur_parameter, focus_disparity,
-                       time.perf_counter() - t0)
-    info["mpi_cache"] = {"entry": str(entry_paths(folder, key)[0]), "reused": reused}
-    if notice is not None:
-        info["mpi_cache"]["notice"] = notice
-    return RefocusResult(img, info), reused, entry_paths(folder, key)[0]
+    def key(self, request) -> str:
+        """The entry's name for ``request`` (:func:`cache_key` of its pixels, background,
+        preset with its refinement, far limit and ``A``)."""
+        return cache_key(passes_digest(request.passes, request.background),
+                         request.preset_key, request.far_limit, request.blur_parameter)
+
+    def fetch(self, request, progress=None):
+        """``(built, info)``: the cached MPI of ``request`` (checked against its passes),
+        or a new build (then stored, unless the entry's path is not a regular file), and
+        ``{"mpi_cache": {"entry": path, "reused": bool[, "notice": line]}}``."""
+        from mpib_validate.runtime.refocus import build_mpi
+
+        passes = request.passes
+        key = self.key(request)
+        npz = entry_paths(self.folder, key)[0]
+        channels = None
+        if passes.groups is None:  # a film alpha adds a fifth channel (refocus.build_mpi)
+            channels = 4 if passes.alpha is None or bool(np.all(passes.alpha >= 1.0)) else 5
+        built, notice = load(self.folder, key, passes.colour.shape[:2], channels)
+        reused = built is not None
+        if built is None:
+            built = build_mpi(request, progress)
+            if any(p.exists() and not p.is_file() for p in entry_paths(self.folder, key)):
+                notice = (f"MPI cache entry '{npz}' is not a regular file; left as it is, the "
+                          f"MPI is not cached")
+            else:
+                store(self.folder, key, built)
+        info = {"entry": str(npz), "reused": reused}
+        if notice is not None:
+            info["notice"] = notice
+        return built, {"mpi_cache": info}

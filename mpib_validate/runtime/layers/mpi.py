@@ -14,6 +14,7 @@ too, since both the card path and the colour + depth path use them.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -425,7 +426,7 @@ class Pixels:
     disparity: np.ndarray
 
 
-def _slab_of_groups(planes, span: float) -> dict:
+def slab_of_groups(planes, span: float) -> dict:
     """Slab id of each additive group (``2k``: plane ``k``; ``2k + 1``: the interval
     ``(d_k, d_k+1)``): consecutive groups merged while the slab's disparity span stays
     within ``span`` (0: one slab per group)."""
@@ -437,6 +438,121 @@ def _slab_of_groups(planes, span: float) -> dict:
             slab, start = slab + 1, lo
         out[g] = slab
     return out
+
+
+#: The additive groups of a plane's content by role (:func:`_share_parts`): 0 content
+#: exactly on plane ``p`` (group ``2p``), 1 its far share of the interval above (group
+#: ``2p + 1``), 2 its near share of the interval below (group ``2p - 1``).
+_GROUP_OF_ROLE = {0: lambda p: 2 * p, 1: lambda p: 2 * p + 1, 2: lambda p: 2 * p - 1}
+
+
+@dataclass(frozen=True, eq=False)
+class LayerPlan:
+    """What the layer builder lays, decided before any pixel is cut: the planes (far to
+    near) and the layers on them, slab by slab. :func:`layers_from_sheets` follows it;
+    the memory estimate (:mod:`mpib_validate.runtime.budget`) reads it.
+
+    Attributes:
+        planes: the plane disparities, sorted (None when more than the ``max_planes``
+            they were planned with: :attr:`plane_count` then says how many).
+        plane_count: how many planes.
+        split: how a pixel is shared between its two planes (:func:`split_between_planes`).
+        slab_of: with ``split="additive"``, the slab of each additive group
+            (:func:`slab_of_groups`); else empty.
+        slabs: ``((slab, ((plane, roles), ...)), ...)`` in the order the layers are laid:
+            each ``(plane, roles)`` is one layer (``roles`` as in :func:`_share_parts`;
+            slab None without the additive split). Computed when first read.
+    """
+
+    planes: np.ndarray | None
+    plane_count: int
+    split: str = "linear"
+    slab_of: dict = field(default_factory=dict)
+
+    @functools.cached_property
+    def slabs(self) -> tuple:
+        slab_layers: dict = {}  # slab -> [(plane, roles)], in the order first reached
+        for p in range(self.plane_count):
+            if self.split != "additive":
+                slab_layers.setdefault(None, []).append((p, (0, 1)))
+                continue
+            by_slab: dict = {}
+            for role in (1, 0, 2):
+                g = _GROUP_OF_ROLE[role](p)
+                if g in self.slab_of:
+                    by_slab.setdefault(self.slab_of[g], []).append(role)
+            for sl, roles in by_slab.items():
+                slab_layers.setdefault(sl, []).append((p, tuple(roles)))
+        return tuple((sl, tuple(m)) for sl, m in slab_layers.items())
+
+    def reached(self, lo, hi):
+        """The planes content in the disparity ranges ``[lo, hi]`` (arrays) is cut into:
+        ``(first, last)`` plane indices. A value ``d`` goes to the two planes around it
+        (:func:`split_between_planes`), one below the first plane or above the last to
+        that plane."""
+        n = self.plane_count
+        first = np.clip(np.searchsorted(self.planes, lo, side="right") - 1, 0, n - 1)
+        last = np.clip(np.searchsorted(self.planes, hi, side="right"), 0, n - 1)
+        return first, last
+
+    def intervals_reached(self, lo, hi):
+        """The intervals ``(d_k, d_k+1)`` content in the ranges ``[lo, hi]`` falls in:
+        ``(first, last)`` interval indices ``k`` (``n >= 2`` planes)."""
+        n = self.plane_count
+        first = np.clip(np.searchsorted(self.planes, lo, side="right") - 1, 0, n - 2)
+        last = np.clip(np.searchsorted(self.planes, hi, side="left") - 1, 0, n - 2)
+        return first, np.maximum(last, first)
+
+    def straddling(self) -> np.ndarray:
+        """``(n,)`` bool: planes ``0 < k < n - 1`` whose interval below and interval above
+        lie in different slabs (additive split), so that their shares of the two are two
+        layers."""
+        n = self.plane_count
+        out = np.zeros(n, bool)
+        if self.split == "additive" and n >= 2:
+            for k in range(1, n - 1):
+                out[k] = self.slab_of[2 * k - 1] != self.slab_of[2 * k + 1]
+        return out
+
+    def tile_area(self, D: np.ndarray, T: int = TILE_PX) -> tuple[np.ndarray, np.ndarray]:
+        """Pixels of the canvas-aligned storage tiles (side ``T``) that may hold each
+        plane's content for a frame of disparities ``D`` (no margin): a tile holds plane
+        ``k`` when its disparity range reaches the interval around ``d_k`` (every pixel
+        is shared by the two planes around its disparity). A :meth:`straddling` plane
+        stores the tiles of each of its two intervals. Returns the tile pixels per plane
+        and the number of layers on it counted so (1 or 2)."""
+        H, W = D.shape
+        n = self.plane_count
+        ny, nx = -(-H // T), -(-W // T)
+        v = np.pad(D, ((0, ny * T - H), (0, nx * T - W)), mode="edge").reshape(ny, T, nx, T)
+        lo, hi = v.min(axis=(1, 3)).ravel(), v.max(axis=(1, 3)).ravel()
+        s_lo, s_hi = self.reached(lo, hi)
+        diff = np.bincount(s_lo, minlength=n + 1) - np.bincount(s_hi + 1, minlength=n + 1)
+        union = np.cumsum(diff[:n]).astype(np.float64) * T * T
+        count = np.ones(n, np.int64)
+        two = self.straddling()
+        if not two.any():
+            return union, count
+        i_lo, i_hi = self.intervals_reached(lo, hi)
+        diff = np.bincount(i_lo, minlength=n) - np.bincount(i_hi + 1, minlength=n)
+        per = np.cumsum(diff[:n - 1]).astype(np.float64) * T * T
+        out = union.copy()
+        for k in np.flatnonzero(two):  # plane k between interval k - 1 and interval k
+            out[k] = per[k - 1] + per[k]
+            count[k] = 2
+        return out, count
+
+
+def plan_layers(planes, split: str = "linear", slab: float = 0.0) -> LayerPlan:
+    """The :class:`LayerPlan` of ``planes``: with ``split="additive"``, content exactly on
+    plane ``k`` is group ``2k`` and the two shares of content strictly inside the
+    interval ``(d_k, d_k+1)`` group ``2k + 1`` (the far share on plane ``k``, the near
+    one on plane ``k + 1``); groups within ``slab`` of disparity form one slab
+    (:func:`slab_of_groups`), and each plane holds one layer per slab it reaches.
+    Otherwise a plane is one layer."""
+    planes = np.asarray(planes, np.float64)
+    slab_of = slab_of_groups(planes, slab) if split == "additive" else {}
+    return LayerPlan(planes, len(planes), split, slab_of)
 
 
 #: Pixels per step when a sheet's pixels are split between planes (bounds the
@@ -555,7 +671,8 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
                        split: str = "linear", snap: float = 0.0, slab: float = 0.0) -> MPI:
     """Cut sheets (given far to near) into planes and combine them into an MPI.
 
-    ``sheets`` holds :class:`Sheet` (dense boxes) or :class:`Pixels` (sparse lists).
+    ``planes``: the plane disparities (sorted), or their :class:`LayerPlan` (which then
+    gives the split and the slabs: ``split`` and ``slab`` are not read). ``sheets`` holds :class:`Sheet` (dense boxes) or :class:`Pixels` (sparse lists).
     Each pixel is shared between its two neighbouring planes by
     :func:`split_between_planes` (``split="linear"``) or goes wholly to the nearest plane
     (``split="nearest"``); ``snap`` (disparity) is passed on to the split. On each plane
@@ -573,8 +690,8 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
     being laid; the colour is read from the sheets plane by plane. A layer is stored as
     its occupied :data:`TILE_PX` tiles where they cover at most :data:`TILED_FILL_MAX` of its box.
     """
-    planes = np.asarray(planes, np.float64)
-    n_planes = len(planes)
+    plan = planes if isinstance(planes, LayerPlan) else plan_layers(planes, split, slab)
+    planes, split, n_planes = plan.planes, plan.split, plan.plane_count
     hc, wc = height + 2 * margin, width + 2 * margin
     T = TILE_PX
     nty, ntx = -(-hc // T), -(-wc // T)
@@ -616,23 +733,6 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
     mpi.colour_max = (np.max(cmax, axis=0).astype(np.float32) if cmax
                       else np.zeros(K, np.float32))
     tile_slot = np.full(nty * ntx, -1, np.int64)
-    # additive: content exactly on plane k is group 2k; the two shares of content
-    # strictly inside the interval (d_k, d_k+1) form group 2k + 1 (the far share on
-    # plane k, the near one on plane k + 1); otherwise a plane is one layer.
-    # Groups within ``slab`` of disparity are merged into one slab at once (each
-    # plane of a slab is then one layer: less memory, one blur)
-    group_of = {0: lambda p: 2 * p, 1: lambda p: 2 * p + 1, 2: lambda p: 2 * p - 1}
-    slab_of = _slab_of_groups(planes, slab) if split == "additive" else {}
-
-    def role_sets(p):
-        if split != "additive":
-            return [((0, 1), None)]
-        by_slab: dict = {}
-        for role in (1, 0, 2):
-            g = group_of[role](p)
-            if g in slab_of:
-                by_slab.setdefault(slab_of[g], []).append(role)
-        return [(tuple(r), sl) for sl, r in by_slab.items()]
 
     def layer_parts(p, role_set):
         """Every share on the layer of plane ``p`` and ``role_set``, far to near:
@@ -655,13 +755,9 @@ def layers_from_sheets(sheets, planes, height: int, width: int, margin: int = 0,
     # the layer is their sum. On one plane that is "over" with the whole alpha as the
     # cover; across the planes of a slab it keeps an opaque pixel from counting twice
     # (two sheets of one pixel on two planes of one slab gave a coverage up to 2).
-    slab_layers: dict = {}  # slab -> [(plane, roles)]
-    for p in range(n_planes):
-        for rs, sl in role_sets(p):
-            slab_layers.setdefault(sl, []).append((p, rs))
     trans = np.ones(hc * wc, np.float32) if split == "additive" else None
     layers = []
-    for slab_id, members in slab_layers.items():
+    for slab_id, members in plan.slabs:
         weights = (_slab_weights(members, shares, sources, trans)
                    if trans is not None else None)
         for p, rs in members:

@@ -35,7 +35,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mpib_validate.runtime.layers import fill as _fill
-from mpib_validate.runtime.layers.mpi import (SNAP_PX, MPI, Pixels, Sheet, adaptive_planes, layers_from_sheets, plane_spacing, uniform_planes)
+from mpib_validate.runtime.layers.mpi import (SNAP_PX, MPI, LayerPlan, Pixels, Sheet, adaptive_planes,
+                                             layers_from_sheets, plan_layers, plane_spacing,
+                                             uniform_planes)
 
 
 class PassError(ValueError):
@@ -69,6 +71,15 @@ def depth_to_disparity(depth: np.ndarray, far_limit: float = DEFAULT_FAR_LIMIT,
         raise PassError(f"{source}: depth is at infinity (>= {far_limit:g}) everywhere; "
                         f"was the Depth pass rendered with geometry in view?")
     return np.where(far, 0.0, 1.0 / np.where(far, 1.0, Z))
+
+
+def passes_disparity(passes, far_limit: float = DEFAULT_FAR_LIMIT) -> np.ndarray:
+    """The disparity of passes (:class:`mpib_validate.runtime.refocus.Passes`): the one
+    given (``passes.disparity``, a photograph's), else :func:`depth_to_disparity` of
+    their depth."""
+    if passes.disparity is not None:
+        return np.asarray(passes.disparity, np.float64)
+    return depth_to_disparity(passes.depth, far_limit, source=passes.depth_source)
 
 
 @dataclass
@@ -120,10 +131,30 @@ class PassesInfo:
     extra: dict = field(default_factory=dict)
 
 
-def _content_intervals(values: np.ndarray, step: float) -> list[tuple[float, float]]:
+#: Up to this many values :func:`content_intervals` with ``exact=False`` finds the
+#: intervals exactly; beyond, on bins one plane step wide.
+EXACT_INTERVALS_PX = 1 << 22
+
+
+def content_intervals(values: np.ndarray, step: float,
+                      exact: bool = True) -> list[tuple[float, float]]:
     """Disparity intervals that hold content: sorted values split where a gap exceeds
-    one plane step (values rounded to 1e-12)."""
-    v = np.round(np.asarray(values, np.float64).ravel(), 12)
+    one plane step (values rounded to 1e-12).
+
+    ``exact=False`` (the memory estimate's: cheap on any input): beyond
+    :data:`EXACT_INTERVALS_PX` values, the occupied bins one step wide (an O(n) count
+    that can merge two intervals less than two steps apart: never fewer planes)."""
+    v = np.asarray(values, np.float64).ravel()
+    if not exact and v.size > EXACT_INTERVALS_PX:
+        lo, hi = float(v.min()), float(v.max())
+        b = ((v - lo) / step).astype(np.int64)
+        n = int(b.max()) + 1
+        ids = np.flatnonzero(np.bincount(b, minlength=n)) if n <= 1 << 24 else np.unique(b)
+        breaks = np.flatnonzero(np.diff(ids) > 1)
+        starts = ids[np.concatenate([[0], breaks + 1])]
+        ends = ids[np.concatenate([breaks, [ids.size - 1]])]
+        return [(lo + s * step, min(lo + (e + 1) * step, hi)) for s, e in zip(starts, ends)]
+    v = np.round(v, 12)
     if v.size == 0:
         return []
     binned = _binned_intervals(v, step)
@@ -137,7 +168,7 @@ def _content_intervals(values: np.ndarray, step: float) -> list[tuple[float, flo
 
 
 def _binned_intervals(v: np.ndarray, step: float):
-    """:func:`_content_intervals` without a full sort: the values grouped into bins one
+    """:func:`content_intervals` without a full sort: the values grouped into bins one
     step wide (a radix sort of 16-bit bin numbers). A gap wider than a step can then only
     lie between the largest value of one occupied bin and the smallest of the next (the
     bins are monotone in the value), provided no bin spans more than a step itself
@@ -299,27 +330,48 @@ def known_background_mask(colour, disparity, far_field, near_next, known_rgb, kn
     return use & seed_ok[iy, ix]
 
 
-def mpi_from_sheets(sheets, blur_parameter: float, settings: PassesSettings, height: int,
-                    width: int) -> MPI:
-    """Place the planes for ``sheets`` (far to near; :class:`~mpib_validate.runtime.layers.mpi.Sheet` or
-    :class:`~mpib_validate.runtime.layers.mpi.Pixels`) as ``settings`` say and cut the sheets into them:
-    adaptive planes (:func:`~mpib_validate.runtime.layers.mpi.adaptive_planes`) over the disparity
-    intervals that hold content (alpha > 0), or ``n_uniform`` planes up to the largest
-    disparity; then :func:`~mpib_validate.runtime.layers.mpi.layers_from_sheets` with the setting's split."""
-    values = np.concatenate([np.asarray(sh.disparity, np.float64)[np.asarray(sh.alpha) > 0]
-                             for sh in sheets])
+def layer_plan(values, blur_parameter: float, settings: PassesSettings,
+               exact: bool = True, max_planes: int | None = None) -> LayerPlan:
+    """The :class:`~mpib_validate.runtime.layers.mpi.LayerPlan` the builder follows for
+    content at the disparities ``values`` (1/scene-unit): adaptive planes
+    (:func:`~mpib_validate.runtime.layers.mpi.adaptive_planes`, spaced at most ``2 tol / A``)
+    over the :func:`content_intervals`, or ``n_uniform`` planes up to the largest
+    disparity; its layers and slabs for the setting's split and ``slab_px / A``.
+
+    ``exact=False``: the intervals as :func:`content_intervals` estimates them (the
+    memory estimate, on a disparity map before the fill: the builder's values are a
+    subset of the map's). ``max_planes``: when more planes than that would be placed,
+    the plan holds only their count (``planes`` None)."""
+    A = blur_parameter
     if settings.planes == "uniform":
-        top = float(values.max()) if values.size else 0.0
+        v = np.asarray(values, np.float64)
+        top = float(v.max()) if v.size else 0.0
         planes = uniform_planes(settings.n_uniform, max(top, 1e-9) * (1 + 1e-9))
     elif settings.planes == "adaptive":
-        step = plane_spacing(blur_parameter, settings.tolerance_px)
-        planes = adaptive_planes(_content_intervals(values, step), blur_parameter,
-                                 settings.tolerance_px)
+        step = plane_spacing(A, settings.tolerance_px)
+        intervals = content_intervals(values, step, exact)
+        if max_planes is not None:
+            count = sum(1 if hi <= lo else math.ceil(min((hi - lo) / step, 1e300)) + 1
+                        for lo, hi in intervals)
+            if count > max_planes:
+                return LayerPlan(None, count, settings.split)
+        planes = adaptive_planes(intervals, A, settings.tolerance_px)
     else:
         raise ValueError(f"planes must be 'adaptive' or 'uniform', got {settings.planes!r}")
-    return layers_from_sheets(sheets, planes, height, width, 0, split=settings.split,
-                              snap=SNAP_PX / blur_parameter,
-                              slab=settings.slab_px / blur_parameter)
+    return plan_layers(planes, settings.split, settings.slab_px / A)
+
+
+def mpi_from_sheets(sheets, blur_parameter: float, settings: PassesSettings, height: int,
+                    width: int) -> MPI:
+    """Cut ``sheets`` (far to near; :class:`~mpib_validate.runtime.layers.mpi.Sheet` or
+    :class:`~mpib_validate.runtime.layers.mpi.Pixels`) into the planes of their
+    :func:`layer_plan` (over the disparities that hold content, alpha > 0) with
+    :func:`~mpib_validate.runtime.layers.mpi.layers_from_sheets`."""
+    values = np.concatenate([np.asarray(sh.disparity, np.float64)[np.asarray(sh.alpha) > 0]
+                             for sh in sheets])
+    plan = layer_plan(values, blur_parameter, settings)
+    return layers_from_sheets(sheets, plan, height, width, 0,
+                              snap=SNAP_PX / blur_parameter)
 
 
 def sheets_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter: float,
