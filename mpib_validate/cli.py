@@ -292,7 +292,7 @@ def _refocus_camera(args, passes):
              "sensor_height_mm": args.sensor_height_mm, "sensor_fit": args.sensor_fit,
              "fstop": args.fstop, "unit_scale": args.scene_unit_m,
              "blur_parameter": args.blur_parameter, "focus_distance": args.focus_depth,
-             "focus_disparity": args.focus_disparity}
+             "focus_disparity": args.focus_disparity, **_aperture_given(args)}
     labels = {}
     if args.focus_pixel is not None:
         x, y = args.focus_pixel
@@ -301,6 +301,27 @@ def _refocus_camera(args, passes):
         given["focus_disparity"] = focus_from_pixel(passes, x, y, far_limit=args.far_limit)
         labels["focus_disparity"] = "--focus-pixel {},{}".format(*args.focus_pixel)
     return resolve(passes.camera, given, W, H, args.input, labels)
+
+
+def _aperture_given(args) -> dict:
+    """The aperture options as camera fields (``--rotation`` degrees to radians), None
+    where not given; a non-finite rotation is refused here, naming the option (the
+    blades and the ratio are checked by ``camera_header.resolve``)."""
+    rotation = args.rotation
+    if rotation is not None:
+        if not math.isfinite(rotation):
+            raise CliError(f"--rotation must be a finite angle in degrees, got {rotation}")
+        rotation = math.radians(rotation)
+    return {"aperture_blades": args.blades, "aperture_rotation": rotation,
+            "aperture_ratio": args.ratio}
+
+
+def _cli_aperture(args):
+    """The aperture of the options alone (a photograph with --K: no header), a disk where
+    none is given."""
+    from mpib_validate.runtime.io.camera_header import resolve_aperture
+
+    return resolve_aperture(_aperture_given(args))
 
 
 def _progress_bar(enabled: bool, desc: str, total: float, unit: str):
@@ -567,10 +588,14 @@ def _refocus_photo(args) -> int:
         sources = {"blur_parameter": "--K", "focus_disparity": "--focus-pixel {},{}".format(
             *args.focus_pixel) if args.focus_pixel else (
             "--disp-focus" if args.disp_focus is not None else "--focus-disparity")}
+        aperture = _cli_aperture(args)
         camera_info = {"K": A, "disp_focus": d_f, "from": sources}
+        if not aperture.is_disk:
+            camera_info["aperture"] = aperture.to_dict()
     else:
         used = _refocus_camera(args, passes)
         A, d_f = used.camera.blur_parameter, used.camera.focus_disparity
+        aperture = used.camera.aperture
         camera_info = used.header()
     if args.official_focus_range:
         passes.disparity = widen_focus(D, d_f, 0.5 / OFFICIAL_BINS)
@@ -578,7 +603,7 @@ def _refocus_photo(args) -> int:
     # depth EXR is taken as a renderer's exact depth
     refine = args.refine or ("guided" if args.disparity is not None else "off")
     result = _plan_and_refocus(args, RefocusRequest(passes, A, d_f, args.preset, args.far_limit,
-                                                    refine=refine))
+                                                    refine=refine, aperture=aperture))
     result.info["refine"] = refine
     result.info["camera"] = camera_info
     result.info["encoding"] = photo.encoding.describe()
@@ -647,14 +672,16 @@ def cmd_refocus(args) -> int:
     A, d_f = used.camera.blur_parameter, used.camera.focus_disparity
     background = read_background(args.background, (H, W)) if args.background else None
     result = _plan_and_refocus(args, RefocusRequest(passes, A, d_f, args.preset, args.far_limit,
-                                                    background))
+                                                    background,
+                                                    aperture=used.camera.aperture))
     result.info["camera"] = used.header()  # which camera fields were used, and from where
     written = write_result(args.output, result, preview=not args.no_preview)
     i = result.info
     layered = f", {i['groups']} depth groups" if i["groups"] > 1 else ""
     return _report(f"refocused {W}x{H} ({args.preset}{layered})", i, written,
                    f"edge pixels {100 * i['edge_fraction']:.1f} %, A = {A:.3f} px, "
-                   f"d_f = {d_f:.5g}")
+                   f"d_f = {d_f:.5g}" + ("" if used.camera.aperture.is_disk else
+                                         f", aperture {used.camera.aperture.describe()}"))
 
 
 def _report(head: str, info: dict, written, details: str) -> int:
@@ -901,6 +928,16 @@ def build_parser() -> argparse.ArgumentParser:
     lens.add_argument("--sensor-fit", type=str.upper, choices=list(SENSOR_FITS),
                       help="how the sensor maps to the image, as Blender: AUTO puts the sensor "
                            "width across the larger image side (default: the header's, else AUTO)")
+    lens.add_argument("--blades", type=int, metavar="N",
+                      help="aperture blades: 0 (a disk) or 3 to 16, as Blender's Camera > "
+                           "Aperture > Blades (default: the header's, else 0)")
+    lens.add_argument("--rotation", type=float, metavar="DEG",
+                      help="the blades' rotation in degrees, counter-clockwise on screen, as "
+                           "Blender's Rotation (default: the header's, else 0)")
+    lens.add_argument("--ratio", type=float,
+                      help="anamorphic ratio, as Blender's Ratio: the aperture's width is "
+                           "divided by it (1.5: oval bokeh 1.5 times taller than wide); "
+                           "finite and > 0 (default: the header's, else 1)")
     lens.add_argument("--scene-unit-m", type=float,
                       help="metres per depth unit for the lens (default: the header's, else 1; "
                            "Blender renders need 1 whatever their Unit Scale)")

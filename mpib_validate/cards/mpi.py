@@ -115,9 +115,11 @@ def render_exact(mpi: MPI, camera, samples=None, backend: str = "auto") -> np.nd
     Each layer becomes a fronto-parallel card and the Eq. 15 tracer renders it: each
     sample shifts layer ``i`` by ``A (d_i - d_f) (mu, nu)`` and composites front to
     back. Returns ``(H, W, 4)`` in the same form as :func:`composite` (normalised colour
-    and coverage).
+    and coverage). The aperture points are the camera's aperture's (default samples: 1,024
+    over ``camera.aperture``).
     """
-    img, _ = trace(mpi_to_scene(mpi, camera), samples or _s.stratified(1024),
+    img, _ = trace(mpi_to_scene(mpi, camera),
+                   samples or _s.stratified(1024, aperture=camera.aperture),
                    backend=backend, notices=False)
     out = np.zeros_like(img)
     a = img[..., 3:4]

@@ -16,6 +16,7 @@ format is documented in ``docs/scene-format.md`` and is meant to be written by h
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import json
 import math
@@ -27,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from mpib_validate.runtime.io.atomic import write_text
-from mpib_validate.runtime.camera import Camera
+from mpib_validate.runtime.camera import Aperture, ApertureError, Camera
 
 FORMAT_NAME = "mpib-scene"
 FORMAT_VERSION = 1
@@ -183,9 +184,8 @@ class Scene:
 
     def with_camera(self, **changes) -> "Scene":
         """Same cards, camera with some fields replaced (e.g. ``focus_disparity=0.3``)."""
-        cam = self.camera.to_dict()
-        cam.update(changes)
-        return Scene(Camera(**cam), self.cards, dict(self.metadata), list(self.sources))
+        return Scene(dataclasses.replace(self.camera, **changes), self.cards,
+                     dict(self.metadata), list(self.sources))
 
 
 # --------------------------------------------------------------------------------------
@@ -312,7 +312,10 @@ def save_scene(scene: Scene, directory: str | os.PathLike, *, half: bool = False
 
 #: The fields each object of ``scene.json`` may have (docs/scene-format.md).
 TOP_FIELDS = ("format", "version", "camera", "cards", "metadata")
-CAMERA_FIELDS = ("width", "height", "blur_parameter", "focus_disparity", "focal_length_px")
+CAMERA_FIELDS = ("width", "height", "blur_parameter", "focus_disparity", "focal_length_px",
+                 "aperture")
+#: The fields of the camera's optional ``aperture`` (a disk when left out).
+APERTURE_FIELDS = ("blades", "rotation", "ratio")
 CARD_FIELDS = ("name", "texture", "size", "offset", "disparity", "plane")
 PLANE_FIELDS = ("a", "b", "c")
 
@@ -402,6 +405,16 @@ def load_scene(path: str | os.PathLike) -> Scene:
         v = cam[key]
         if isinstance(v, bool) or not isinstance(v, int) or v < 1:
             raise SceneError(f"{src}: camera field '{key}': must be a positive integer, got {v!r}")
+    cam = dict(cam)
+    if "aperture" in cam:
+        ap = cam["aperture"]
+        if not isinstance(ap, dict):
+            raise SceneError(f"{src}: camera field 'aperture' must be an object")
+        _refuse_unknown(ap, APERTURE_FIELDS, f"{src}: camera aperture")
+        try:
+            cam["aperture"] = Aperture(**ap)
+        except ApertureError as exc:
+            raise SceneError(f"{src}: camera aperture: {exc}") from None
     camera = Camera(**cam)
     validate_camera(camera, src)
 

@@ -426,8 +426,9 @@ def trace(scene: Scene, samples: _samples.LensSamples | None = None, *, backend:
     """Render the defocused image of ``scene`` (Eq. 15, front-to-back "over").
 
     Args:
-        samples: joint aperture/pixel samples; default a 1,024-point scrambled Sobol set
-            with pixel box averaging.
+        samples: joint aperture/pixel samples of the camera's aperture (refused
+            otherwise); default a 1,024-point scrambled Sobol set with pixel box
+            averaging over ``scene.camera.aperture``.
         backend: ``auto`` (CUDA, then LLVM, then numpy), ``numpy``, ``llvm`` or ``cuda``.
         lookup: ``nearest`` (canonical) or ``bilinear`` (the official generator).
         order: ``depth`` (per-ray sort) or ``fixed`` (the official order; wrong where
@@ -442,7 +443,12 @@ def trace(scene: Scene, samples: _samples.LensSamples | None = None, *, backend:
     if order not in ORDERS:
         raise ValueError(f"order must be one of {ORDERS}, got {order!r}")
     scene.validate()
-    smp = samples if samples is not None else _samples.stratified(1024)
+    aperture = scene.camera.aperture
+    smp = samples if samples is not None else _samples.stratified(1024, aperture=aperture)
+    if not smp.covers(aperture):
+        raise ValueError(f"the samples ({smp.kind}) are not of the camera's aperture "
+                         f"({aperture.describe()}): make them with "
+                         f"samples.stratified(n, aperture=camera.aperture)")
     be = _backend.resolve(backend)
     if notices:
         _backend.notify(be)

@@ -375,17 +375,19 @@ def estimate_request(request, threads: int | None = None) -> Estimate:
     D = passes_disparity(request.passes, request.far_limit)
     return refocus_estimate(D, request.blur_parameter, request.focus_disparity,
                             request.preset, background=request.background is not None,
-                            threads=threads)
+                            threads=threads, aperture=request.aperture)
 
 
 def refocus_estimate(disparity: np.ndarray, blur_parameter: float, focus_disparity: float,
                      preset, background: bool = False,
-                     threads: int | None = None) -> Estimate:
+                     threads: int | None = None, aperture=None) -> Estimate:
     """Estimated peak memory of ``refocus.refocus`` on a disparity map (1/scene-unit,
     0 = infinitely far) with the blur parameter ``A`` (px per unit disparity), focus
     ``d_f`` and a preset's settings (a :class:`~mpib_validate.runtime.presets.Preset`),
     blurring on ``threads`` threads (default: as many as the compositor uses here,
-    ``composite.blur_threads()``). Costs a few passes over the disparity."""
+    ``composite.blur_threads()``). Costs a few passes over the disparity. ``aperture``:
+    the lens's shape (``camera.Aperture``); its reach ``A extent`` (``extent = max(1,
+    1/ratio)``, what the refocus builds and blurs with) stands for ``A``."""
     from mpib_validate.runtime.compositor.composite import blur_threads
     from mpib_validate.runtime.compositor.kernels import KERNEL_CACHE_BYTES
     from mpib_validate.runtime.layers.passes import layer_plan
@@ -393,7 +395,7 @@ def refocus_estimate(disparity: np.ndarray, blur_parameter: float, focus_dispari
     threads = blur_threads() if threads is None else max(1, int(threads))
     D = np.asarray(disparity, np.float64)
     H, W = D.shape
-    A = float(blur_parameter)
+    A = float(blur_parameter) * (1.0 if aperture is None else aperture.extent)
     p = preset
     px = H * W
     # the builder's plan for these disparities (an upper bound: its content is a subset

@@ -21,6 +21,7 @@ derived from the physical form only here, so each conversion is written once.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 #: Default horizontal field of view used when a scene does not give a focal length:
@@ -45,6 +46,124 @@ class ThinLens:
     focus_distance: float
 
 
+#: Blender's largest blade count (``CameraDOFSettings.aperture_blades``: 0, or 3 to 16).
+MAX_BLADES = 16
+
+
+class ApertureError(ValueError):
+    """An aperture that cannot be used: one line naming the field."""
+
+
+@dataclass(frozen=True)
+class Aperture:
+    """The shape of the lens aperture, with Cycles' conventions (``camera_sample_aperture``
+    in ``kernel/camera/camera.h``, ``regular_polygon_sample`` in ``kernel/sample/mapping.h``;
+    ``docs/reference.md``, section "Aperture shape").
+
+    The aperture radius ``R`` (``A = R f_px``) is the disk's radius, and a polygon's
+    circumradius (its corners lie on the circle of radius ``R``). In the image axes
+    (x right, y down) the unit aperture point ``(mu, nu)`` (a pixel at ``x`` sees
+    ``x + A (d - d_f) (mu, nu)``, Eq. 15) is Cycles' lens point ``(ax, -ay)``.
+
+    Attributes:
+        blades: 0 for a disk, else 3 to 16: a regular polygon whose corners lie at
+            angles ``rotation + (2k + 1) pi / blades`` (counter-clockwise as seen on
+            screen; at rotation 0 an edge's midpoint, at ``cos(pi / blades)``, lies on +x).
+        rotation: the polygon's rotation in **radians** (Blender's ``aperture_rotation``),
+            counter-clockwise as seen on screen.
+        ratio: the anamorphic ratio (Blender's ``aperture_ratio``): the aperture's
+            horizontal axis is divided by it (1.5: a 1.5 times taller than wide aperture),
+            finite and > 0.
+    A point behind the focus spreads into the aperture as seen on screen, one in front
+    of it into the aperture turned 180 degrees.
+    """
+
+    blades: int = 0
+    rotation: float = 0.0
+    ratio: float = 1.0
+
+    def __post_init__(self) -> None:
+        b = self.blades
+        if isinstance(b, bool) or not isinstance(b, numbers.Integral) or not (
+                b == 0 or 3 <= b <= MAX_BLADES):
+            raise ApertureError(f"blades must be 0 (a disk) or 3 to {MAX_BLADES}, got {b!r}")
+        r = self.rotation
+        if isinstance(r, bool) or not isinstance(r, numbers.Real) or not math.isfinite(r):
+            raise ApertureError(f"rotation must be a finite angle in radians, got {r!r}")
+        q = self.ratio
+        if isinstance(q, bool) or not isinstance(q, numbers.Real) or not (
+                math.isfinite(q) and q > 0):
+            raise ApertureError(f"ratio must be finite and > 0, got {q!r}")
+        object.__setattr__(self, "blades", int(b))
+        object.__setattr__(self, "rotation", float(r))
+        object.__setattr__(self, "ratio", float(q))
+
+    @property
+    def is_disk(self) -> bool:
+        """Round, of radius R (a disk's rotation changes nothing)."""
+        return self.blades == 0 and self.ratio == 1.0
+
+    @property
+    def symmetric(self) -> bool:
+        """Centrally symmetric (a disk, an ellipse, an even polygon): the blur of a point
+        in front of the focus is then the same shape as behind it."""
+        return self.blades % 2 == 0
+
+    @property
+    def extent(self) -> float:
+        """The shape's largest reach from its centre along x or y, in units of R:
+        ``max(1, 1 / ratio)`` (a polygon's corners lie on the unit circle)."""
+        return max(1.0, 1.0 / self.ratio)
+
+    @property
+    def apothem(self) -> float:
+        """Distance from the centre to the edges of the unit shape before the ratio:
+        ``cos(pi / blades)``, 1 for a disk."""
+        return 1.0 if self.blades == 0 else math.cos(math.pi / self.blades)
+
+    @property
+    def area(self) -> float:
+        """Area of the unit aperture (R = 1): ``pi / ratio`` for a disk,
+        ``(n / 2) sin(2 pi / n) / ratio`` for ``n`` blades."""
+        n = self.blades
+        return (math.pi if n == 0 else 0.5 * n * math.sin(2.0 * math.pi / n)) / self.ratio
+
+    def contains(self, mu, nu):
+        """Whether the image-axes points ``(mu, nu)`` (numpy arrays) lie in the unit
+        aperture (boundary included)."""
+        import numpy as np
+
+        x = np.asarray(mu, np.float64) * self.ratio
+        y = -np.asarray(nu, np.float64)  # Cycles' y points up
+        if self.blades == 0:
+            return x * x + y * y <= 1.0
+        a = self.apothem
+        inside = np.ones(np.broadcast(x, y).shape, bool)
+        for k in range(self.blades):  # edge k's outward normal at rotation + 2 pi k / n
+            t = self.rotation + 2.0 * math.pi * k / self.blades
+            inside &= x * math.cos(t) + y * math.sin(t) <= a
+        return inside
+
+    def to_dict(self) -> dict:
+        return {"blades": self.blades, "rotation": self.rotation, "ratio": self.ratio}
+
+    def describe(self) -> str:
+        """A short text: ``disk``, ``6 blades at 15 deg``, ``, ratio 1.5``."""
+        text = "disk" if self.blades == 0 else (
+            f"{self.blades} blades at {math.degrees(self.rotation):g} deg")
+        return text + (f", ratio {self.ratio:g}" if self.ratio != 1.0 else "")
+
+
+#: The round aperture (Blender's default: 0 blades, rotation 0, ratio 1).
+DISK = Aperture()
+
+
+def blender_aperture(blades: int, rotation: float, ratio: float) -> Aperture:
+    """The :class:`Aperture` a Blender camera renders with: Cycles renders 1 or 2 blades
+    as a disk (``kcam->blades = (blades < 3) ? 0 : blades`` in ``scene/camera.cpp``)."""
+    return Aperture(0 if blades < 3 else int(blades), float(rotation), float(ratio))
+
+
 @dataclass(frozen=True)
 class Camera:
     """Image-space thin-lens camera.
@@ -55,6 +174,8 @@ class Camera:
         focus_disparity: ``d_f = 1/z_f`` in 1/scene-unit (0 = focus at infinity).
         focal_length_px: ``f_px``; only the physical form (Mitsuba, Cycles) depends
             on it. Defaults to a 50 mm lens on a 36 mm wide sensor.
+        aperture: the aperture's shape (:class:`Aperture`; default a disk). A point's
+            blur is that shape scaled by ``A |d - d_f|`` (its circumradius).
     """
 
     width: int
@@ -62,6 +183,7 @@ class Camera:
     blur_parameter: float
     focus_disparity: float
     focal_length_px: float | None = None
+    aperture: Aperture = DISK
 
     def __post_init__(self) -> None:
         if self.focal_length_px is None:
@@ -111,6 +233,9 @@ class Camera:
             "sensor_fit": "HORIZONTAL",
             "fstop": fstop,
             "focus_distance": lens.focus_distance,
+            "aperture_blades": self.aperture.blades,
+            "aperture_rotation": self.aperture.rotation,
+            "aperture_ratio": self.aperture.ratio,
         }
 
     # -- Mitsuba -----------------------------------------------------------------------------
@@ -140,6 +265,7 @@ class Camera:
             "blur_parameter": float(self.blur_parameter),
             "focus_disparity": float(self.focus_disparity),
             "focal_length_px": float(self.focal_length_px),
+            **({} if self.aperture.is_disk else {"aperture": self.aperture.to_dict()}),
         }
 
 
@@ -172,7 +298,8 @@ def blender_focal_length_px(lens_mm: float, sensor_width_mm: float, sensor_heigh
 
 def blender_camera(lens_mm: float, sensor_width_mm: float, sensor_height_mm: float,
                    sensor_fit: str, width: int, height: int, fstop: float,
-                   focus_distance: float, unit_scale: float = 1.0) -> Camera:
+                   focus_distance: float, unit_scale: float = 1.0,
+                   aperture: Aperture = DISK) -> Camera:
     """The :class:`Camera` that a Blender perspective camera renders with: the one
     conversion from Blender's lens settings (the add-on, ``mpib refocus`` and the EXR
     header camera all call it).
@@ -186,6 +313,7 @@ def blender_camera(lens_mm: float, sensor_width_mm: float, sensor_height_mm: flo
     lens in mm as 1e-3 Blender units whatever the scene's Unit Scale (a Cycles depth of
     field render does not change with ``unit_settings.scale_length``, checked in the
     tests), so a Blender render has 1; another value is for depth in other units.
+    ``aperture``: the blades, rotation and ratio (:func:`blender_aperture`).
     """
     for name, value in (("lens", lens_mm), ("sensor width", sensor_width_mm),
                         ("sensor height", sensor_height_mm), ("unit scale", unit_scale)):
@@ -198,7 +326,7 @@ def blender_camera(lens_mm: float, sensor_width_mm: float, sensor_height_mm: flo
     f_px = blender_focal_length_px(lens_mm, sensor_width_mm, sensor_height_mm, sensor_fit,
                                    width, height)
     R = lens_mm * 1e-3 / unit_scale / (2.0 * fstop)
-    return Camera(width, height, R * f_px, 1.0 / focus_distance, f_px)
+    return Camera(width, height, R * f_px, 1.0 / focus_distance, f_px, aperture)
 
 
 def blender_orthographic_camera(ortho_scale: float, sensor_fit: str, width: int, height: int,

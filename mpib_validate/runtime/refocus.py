@@ -354,8 +354,10 @@ def build_mpi(request: RefocusRequest, progress=None) -> BuiltMPI:
     ``2 tol / A``, the edge threshold and how far behind each edge the background is
     filled), with the request's layer settings (its preset's, with its refinement:
     ``"guided"`` or ``"guided-thin"`` moves a predicted disparity's edges onto the
-    colour edges, :mod:`mpib_validate.runtime.layers.refine`) and background render."""
-    passes, A, far_limit = request.passes, request.blur_parameter, request.far_limit
+    colour edges, :mod:`mpib_validate.runtime.layers.refine`) and background render.
+    ``A`` is the request's :attr:`~mpib_validate.runtime.request.RefocusRequest.build_blur_parameter`
+    (the aperture's reach)."""
+    passes, A, far_limit = request.passes, request.build_blur_parameter, request.far_limit
     settings, background = request.preset.passes, request.background
     D = passes_disparity(passes, far_limit)
     # The film alpha travels as a fourth colour channel (premultiplied like the colour),
@@ -399,6 +401,8 @@ def render_built(built: BuiltMPI, request: RefocusRequest, progress=None,
     settings = p.composite
     if settings.kernel == "canonical":  # the input's pixel model picks the kernel
         settings = dataclasses.replace(settings, kernel=PIXEL_MODELS[built.pixel_model])
+    if request.aperture is not None and not request.aperture.is_disk:  # the lens's shape
+        settings = dataclasses.replace(settings, aperture=request.aperture)
     img = render_subapertures(built.mpi, A, request.focus_disparity, p.subapertures,
                               settings, progress=progress)
     covered = img[..., 3] > 0
@@ -416,10 +420,12 @@ def render_built(built: BuiltMPI, request: RefocusRequest, progress=None,
 
 
 def result_info(request: RefocusRequest, built: BuiltMPI, seconds: float) -> dict:
-    """The ``info`` of a :class:`RefocusResult` (written into the output's header)."""
+    """The ``info`` of a :class:`RefocusResult` (written into the output's header). The
+    largest blur radius is along the aperture's larger axis (``A extent |d - d_f|``)."""
     passes, A, d_f = request.passes, request.blur_parameter, request.focus_disparity
     D, info = built.disparity, built.info
-    radius = A * max(abs(float(D.max()) - d_f), abs(float(D.min()) - d_f))
+    reach = request.build_blur_parameter
+    radius = reach * max(abs(float(D.max()) - d_f), abs(float(D.min()) - d_f))
     return {
         "preset": request.preset.name, "planes": info.planes, "largest_radius_px": radius,
         "fill_fraction": info.fill_fraction, "edge_fraction": info.edge_fraction,

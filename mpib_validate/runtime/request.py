@@ -39,6 +39,9 @@ class RefocusRequest:
             foreground (:func:`mpib_validate.runtime.refocus.read_background`).
         refine: the disparity refinement asked for (``"off"``, ``"guided"``,
             ``"guided-thin"``), or None for the preset's own (off in every preset).
+        aperture: the lens's shape (:class:`mpib_validate.runtime.camera.Aperture`:
+            blades, rotation, ratio), or None for a disk. The layers are blurred with its
+            kernels, and the MPI is built for its reach (:attr:`build_blur_parameter`).
 
     Raises :class:`PassError` for an ``A`` or ``d_f`` that is not finite, ``A <= 0`` or
     ``d_f < 0``, and ValueError naming the presets for an unknown preset name.
@@ -51,6 +54,7 @@ class RefocusRequest:
     far_limit: float = DEFAULT_FAR_LIMIT
     background: tuple | None = None
     refine: str | None = None
+    aperture: object = None
 
     def __post_init__(self):
         A, d_f = self.blur_parameter, self.focus_disparity
@@ -73,6 +77,15 @@ class RefocusRequest:
         :class:`~mpib_validate.runtime.presets.Preset` needs a name of its own."""
         name, refine = self.preset.name, self.preset.passes.refine
         return name if refine == "off" else f"{name}+refine={refine}"
+
+    @property
+    def build_blur_parameter(self) -> float:
+        """The ``A`` the MPI is built for (plane spacing, edge threshold, fill reach, the
+        cache key): the blur's largest reach, ``A extent`` (``extent = max(1, 1/ratio)``:
+        a polygon lies inside the circle of radius ``A |d - d_f|``, a ratio below 1
+        widens it along x); ``A`` itself for a disk, a polygon, or a ratio >= 1."""
+        ap = self.aperture
+        return self.blur_parameter * (1.0 if ap is None else ap.extent)
 
     def with_lens(self, blur_parameter: float | None = None,
                   focus_disparity: float | None = None) -> "RefocusRequest":

@@ -92,6 +92,10 @@ class CompositeSettings:
             (:class:`_Chain`); ``None``: every slab with "over" (Eq. 1). The
             output's fourth channel is then not Eq. 1's coverage (the colour is
             unchanged by the renormalisation; only a zero coverage stays zero).
+        aperture: the lens's shape (:class:`mpib_validate.runtime.camera.Aperture`:
+            blades, rotation, ratio); ``None``, a disk. Every kernel is that shape's
+            (:func:`~mpib_validate.runtime.compositor.kernels.aperture_kernel`), and a
+            layer's blur reaches ``extent |rho|`` px (``extent = max(1, 1/ratio)``).
     """
 
     kernel: str = "canonical"
@@ -102,12 +106,26 @@ class CompositeSettings:
     slab_px: float | None = None
     tiles: bool = True
     chain_px: float | None = None
+    aperture: object = None
 
 
 PLAIN = CompositeSettings(kernel="canonical", conv="direct", crop=False, reduce_above=None)
 
 
+def _shaped(settings: CompositeSettings) -> bool:
+    """Whether the settings' aperture is other than a disk."""
+    return settings.aperture is not None and not settings.aperture.is_disk
+
+
 def _layer_kernel(rho: float, settings: CompositeSettings, cell=None) -> np.ndarray:
+    if _shaped(settings):
+        ap = settings.aperture
+        if settings.kernel == "canonical":
+            return _k.aperture_kernel(rho, ap, cell)
+        if settings.kernel == "continuous":
+            return _k.aperture_kernel(rho, ap, cell, _k.continuous_axes(rho, ap))
+        if settings.kernel == "soft":
+            raise ValueError("the soft-disk kernel has no polygon or anamorphic form")
     if settings.kernel == "canonical":
         return _k.disk_kernel(rho, cell)
     if settings.kernel == "continuous":
@@ -153,6 +171,14 @@ def _reduced_kernel(rho: float, s: int, settings, cell):
     kernel's ``1/6``; a disk of radius r has ``r^2/4``. The coarse disk is shrunk so that
     the overall second moment equals the full-resolution kernel's."""
     extra = s * s / 12.0 + s * s / 6.0 - 1.0 / 6.0
+    if _shaped(settings):  # per axis: the fine kernel's second moment a^2 V rho^2 less the extra
+        ap = settings.aperture
+        axes = (_k.continuous_axes(rho, ap) if settings.kernel == "continuous"
+                else (1.0, 1.0))
+        V = _k.shape_moments(ap)
+        axes = tuple(math.sqrt(max(a * a - extra / (v * rho * rho), 0.0))
+                     for a, v in zip(axes, V))
+        return _k.aperture_kernel(rho / s, ap, cell, axes)
     if settings.kernel == "continuous":  # the fine target is the disk's r^2/4 alone
         rho = _k.continuous_radius(rho)
         settings = replace(settings, kernel="canonical")
@@ -258,8 +284,11 @@ def _reduction(rho: float, settings: CompositeSettings) -> int:
 
 def _reach(rho: float, settings: CompositeSettings) -> int:
     """How far (px) a layer's blur reaches beyond its content: the kernel radius
-    ``ceil(|rho|) + 1``, plus ``2 s`` for the reduced path's down/up sampling."""
+    ``ceil(extent |rho|) + 1`` (extent 1 for a disk or a polygon, ``1/ratio`` for a
+    ratio below 1), plus ``2 s`` for the reduced path's down/up sampling."""
     s = _reduction(rho, settings)
+    if _shaped(settings):
+        rho = rho * settings.aperture.extent
     return int(math.ceil(abs(rho))) + 1 + (2 * s if s > 1 else 0)
 
 

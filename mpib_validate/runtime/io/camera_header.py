@@ -24,12 +24,19 @@ The object's ``camera`` member has one or both of these forms:
                            whose depth of field ignores the scene's Unit Scale
     ``width``, ``height``  rendered size in pixels (resolution times percentage)
 
-  which :func:`mpib_validate.runtime.camera.blender_camera` turns into ``A = R f_px`` and
-  ``d_f = 1 / focus_distance``;
+  and optionally the aperture's shape (Camera > Depth of Field > Aperture; a disk when
+  left out):
+    ``aperture_blades``    0 (a disk) or 3 to 16; 1 and 2 render a disk in Cycles
+    ``aperture_rotation``  radians, counter-clockwise on screen, finite
+    ``aperture_ratio``     anamorphic ratio (x divided by it), finite and > 0
+
+  which :func:`mpib_validate.runtime.camera.blender_camera` turns into ``A = R f_px``,
+  ``d_f = 1 / focus_distance`` and the :class:`~mpib_validate.runtime.camera.Aperture`;
 
 image-space (``mpib render``, and what a refocus used)
     ``width``, ``height``, ``blur_parameter`` (A, pixels per unit disparity),
-    ``focus_disparity`` (1/scene unit), ``focal_length_px`` (optional).
+    ``focus_disparity`` (1/scene unit), ``focal_length_px`` (optional), ``aperture``
+    (optional: ``{"blades", "rotation", "ratio"}`` as above, rotation in radians).
 
 The Blender form wins where both are given. Without either, Blender's own ``Lens``
 stamp (Metadata > Lens, two decimals) gives the focal length and nothing else: the
@@ -49,7 +56,7 @@ import json
 import math
 from dataclasses import dataclass
 
-from mpib_validate.runtime.camera import (DEFAULT_SENSOR_FIT, DEFAULT_SENSOR_HEIGHT_MM, DEFAULT_SENSOR_MM, SENSOR_FITS, Camera, blender_camera)
+from mpib_validate.runtime.camera import (DEFAULT_SENSOR_FIT, DEFAULT_SENSOR_HEIGHT_MM, DEFAULT_SENSOR_MM, DISK, MAX_BLADES, SENSOR_FITS, Aperture, ApertureError, Camera, blender_aperture, blender_camera)
 
 ATTRIBUTE = "mpib"
 NOTE_ATTRIBUTE = "Note"
@@ -61,6 +68,8 @@ LENS_STAMP = "Lens"
 LENS_FIELDS = ("lens_mm", "sensor_width_mm", "sensor_height_mm", "sensor_fit", "fstop",
                "unit_scale")
 BLENDER_FIELDS = LENS_FIELDS + ("focus_distance", "width", "height")
+#: The aperture's shape, optional in the Blender form (a disk when left out).
+APERTURE_FIELDS = ("aperture_blades", "aperture_rotation", "aperture_ratio")
 #: Blender's defaults for what a header or the user may leave out.
 DEFAULTS = {"sensor_width_mm": DEFAULT_SENSOR_MM, "sensor_height_mm": DEFAULT_SENSOR_HEIGHT_MM,
             "sensor_fit": DEFAULT_SENSOR_FIT, "unit_scale": 1.0}
@@ -68,7 +77,9 @@ DEFAULTS = {"sensor_width_mm": DEFAULT_SENSOR_MM, "sensor_height_mm": DEFAULT_SE
 OPTIONS = {"lens_mm": "--focal-mm", "sensor_width_mm": "--sensor-mm",
            "sensor_height_mm": "--sensor-height-mm", "sensor_fit": "--sensor-fit",
            "fstop": "--fstop", "unit_scale": "--scene-unit-m", "focus_distance": "--focus-depth",
-           "focus_disparity": "--focus-disparity", "blur_parameter": "--blur-parameter"}
+           "focus_disparity": "--focus-disparity", "blur_parameter": "--blur-parameter",
+           "aperture_blades": "--blades", "aperture_rotation": "--rotation",
+           "aperture_ratio": "--ratio"}
 _WHAT = {"lens_mm": "focal length", "fstop": "f-stop"}
 
 
@@ -127,6 +138,15 @@ def check_field(name: str, value, where: str):
         return _fit(value, where)
     if name == "focus_disparity":
         return _number(value, where, positive=False)
+    if name == "aperture_blades":
+        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= MAX_BLADES:
+            raise CameraHeaderError(f"{where} must be 0 (a disk) or 3 to {MAX_BLADES} blades, "
+                                    f"got {value!r}")
+        return int(value)
+    if name == "aperture_rotation":
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise CameraHeaderError(f"{where} must be a finite angle in radians, got {value!r}")
+        return float(value)
     if name == "fstop":
         try:
             return _number(value, where)
@@ -141,7 +161,18 @@ def _check_blender(obj, where: str) -> dict:
     missing = [k for k in BLENDER_FIELDS if k not in obj]
     if missing:
         raise CameraHeaderError(f"{where} lacks field(s) {', '.join(missing)}")
-    return {k: check_field(k, obj[k], f"{where}.{k}") for k in BLENDER_FIELDS}
+    return {k: check_field(k, obj[k], f"{where}.{k}") for k in BLENDER_FIELDS + APERTURE_FIELDS
+            if k in obj}
+
+
+def _check_aperture(obj, where: str) -> Aperture:
+    """The image-space form's ``aperture`` object ``{"blades", "rotation", "ratio"}``."""
+    if not isinstance(obj, dict):
+        raise CameraHeaderError(f"{where} must be a JSON object, got {obj!r}")
+    fields = {k: check_field("aperture_" + k, obj[k], f"{where}.{k}")
+              for k in ("blades", "rotation", "ratio") if k in obj}
+    return blender_aperture(fields.get("blades", 0), fields.get("rotation", 0.0),
+                            fields.get("ratio", 1.0))
 
 
 def _check_image(obj: dict, where: str) -> dict:
@@ -153,6 +184,8 @@ def _check_image(obj: dict, where: str) -> dict:
                 out[k] = _size(obj[k], f"{where}.{k}")
             else:
                 out[k] = _number(obj[k], f"{where}.{k}", positive)
+    if "aperture" in obj:
+        out["aperture"] = _check_aperture(obj["aperture"], f"{where}.aperture")
     return out
 
 
@@ -339,8 +372,47 @@ def resolve(header: HeaderCamera | None, given: dict, width: int, height: int, p
     else:
         raise CameraHeaderError("no focus: give --focus-depth, --focus-disparity or --focus-pixel X,Y"
                                 + (f" ({src} holds none)" if src else f" ('{path}' holds no camera)"))
-    camera = Camera(width, height, A, d_f, f_px)
+    aperture = _resolve_aperture(given, labels, hb, hi, src, sources)
+    camera = Camera(width, height, A, d_f, f_px, aperture)
     return ResolvedCamera(camera, lens, sources)
+
+
+def resolve_aperture(given: dict, labels: dict | None = None) -> Aperture:
+    """The aperture of options alone (``aperture_blades``, ``aperture_rotation`` in
+    radians, ``aperture_ratio``; None or absent: a disk's), checked; the message of the
+    :class:`CameraHeaderError` names the option (:data:`OPTIONS`)."""
+    labels = {**OPTIONS, **(labels or {})}
+    given = {k: check_field(k, v, labels[k]) for k, v in given.items() if v is not None}
+    return _resolve_aperture(given, labels, {}, {}, "", {})
+
+
+def _resolve_aperture(given: dict, labels: dict, hb: dict, hi: dict, src: str,
+                      sources: dict) -> Aperture:
+    """The aperture field by field: the option, else the header's Blender form, else its
+    image-space ``aperture``, else a disk. A given blade count of 1 or 2 is refused
+    (Blender's 1 and 2, which Cycles renders as a disk, are read as a disk from a header)."""
+    b = given.get("aperture_blades")
+    if b is not None and b in (1, 2):
+        raise CameraHeaderError(f"{labels['aperture_blades']} must be 0 (a disk) or 3 to "
+                                f"{MAX_BLADES}, got {b}")
+    base = hi.get("aperture", DISK)
+    fallback = {"aperture_blades": base.blades, "aperture_rotation": base.rotation,
+                "aperture_ratio": base.ratio}
+    value = {}
+    for k in APERTURE_FIELDS:
+        if k in given:
+            value[k], sources[k] = given[k], labels[k]
+        elif k in hb:
+            value[k], sources[k] = hb[k], src
+        else:
+            value[k] = fallback[k]
+            if "aperture" in hi:
+                sources[k] = src
+    try:
+        return blender_aperture(value["aperture_blades"], value["aperture_rotation"],
+                                value["aperture_ratio"])
+    except ApertureError as exc:  # checked field by field above: not reached
+        raise CameraHeaderError(str(exc)) from None
 
 
 

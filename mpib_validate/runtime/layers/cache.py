@@ -223,9 +223,11 @@ class DiskCache:
 
     def key(self, request) -> str:
         """The entry's name for ``request`` (:func:`cache_key` of its pixels, background,
-        preset with its refinement, far limit and ``A``)."""
+        preset with its refinement, far limit and the ``A`` the MPI is built for, the
+        aperture's reach: ``request.build_blur_parameter``; the aperture's shape changes
+        only the blur)."""
         return cache_key(passes_digest(request.passes, request.background),
-                         request.preset_key, request.far_limit, request.blur_parameter)
+                         request.preset_key, request.far_limit, request.build_blur_parameter)
 
     def fetch(self, request, progress=None):
         """``(built, info)``: the cached MPI of ``request`` (checked against its passes),
