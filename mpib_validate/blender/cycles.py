@@ -15,8 +15,9 @@ Conventions (see ``docs/camera.md``):
   point ``(X, Y, Z)`` (scene units, 1 unit = 1 m) projects to
   ``x = f_px X / Z, y = f_px Y / Z`` (pixels from the image centre, y down).
 - Thin lens: ``sensor_fit = 'HORIZONTAL'``, ``f_px = lens_mm / sensor_mm * W``,
-  aperture radius ``R = lens / (2 N)`` in scene units, disk aperture
-  (``aperture_blades = 0``), focus distance ``z_f = 1/d_f`` (``d_f = 0``: 1e7 units).
+  aperture radius ``R = lens / (2 N)`` in scene units, the camera's aperture shape
+  (``Camera.aperture``: blades, rotation, ratio, Cycles' own conventions; a disk by
+  default), focus distance ``z_f = 1/d_f`` (``d_f = 0``: 1e7 units).
 - Pixel model: the Box pixel filter (Cycles forces its width to 1 pixel, whatever
   ``filter_width`` says) spreads the samples uniformly over the pixel square: the
   canonical model's box average; Closest texture interpolation (nearest texel).
@@ -129,8 +130,9 @@ def camera_object(bpy, bl_scene, settings: dict, dof: bool, clip_end: float,
     X, so world axes = camera axes (x right, y down, looking down +Z).
 
     ``settings`` as ``Camera.cycles_settings()`` (``lens_mm``, ``sensor_width_mm``,
-    ``sensor_fit``, ``fstop``, ``focus_distance``: ``inf`` becomes :data:`FAR_FOCUS`);
-    a disk aperture (``aperture_blades = 0``); ``shift_x`` in pixels to the right
+    ``sensor_fit``, ``fstop``, ``focus_distance``: ``inf`` becomes :data:`FAR_FOCUS`,
+    and the aperture's ``aperture_blades``, ``aperture_rotation`` (radians),
+    ``aperture_ratio``: a disk where left out); ``shift_x`` in pixels to the right
     (needs ``width``)."""
     data = bpy.data.cameras.new("Camera")
     data.type = "PERSP"
@@ -144,9 +146,9 @@ def camera_object(bpy, bl_scene, settings: dict, dof: bool, clip_end: float,
     data.clip_start = 1e-4
     data.clip_end = float(clip_end)
     data.dof.use_dof = bool(dof)
-    data.dof.aperture_blades = 0
-    data.dof.aperture_rotation = 0.0
-    data.dof.aperture_ratio = 1.0
+    data.dof.aperture_blades = int(settings.get("aperture_blades", 0))
+    data.dof.aperture_rotation = float(settings.get("aperture_rotation", 0.0))
+    data.dof.aperture_ratio = float(settings.get("aperture_ratio", 1.0))
     data.dof.aperture_fstop = float(settings["fstop"])
     data.dof.focus_object = None
     z_f = settings["focus_distance"]

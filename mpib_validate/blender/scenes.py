@@ -96,7 +96,9 @@ BOKEH_RADIUS_PX = (1.2, 3.0)
 @dataclass(frozen=True)
 class SceneSpec:
     """One scene and focus. ``fstop`` None takes the kind's default (blur radii of about
-    8 to 20 px at 320 px wide; radii scale with the width)."""
+    8 to 20 px at 320 px wide; radii scale with the width). ``blades``, ``rotation_deg``
+    and ``ratio``: the camera's aperture (Blender's Blades, Rotation in degrees, Ratio;
+    a disk by default)."""
 
     kind: str
     seed: int = 0
@@ -106,6 +108,16 @@ class SceneSpec:
     lens_mm: float = 85.0
     sensor_mm: float = 36.0
     fstop: float | None = None
+    blades: int = 0
+    rotation_deg: float = 0.0
+    ratio: float = 1.0
+
+    @property
+    def aperture(self):
+        """The camera's :class:`~mpib_validate.runtime.camera.Aperture`."""
+        from mpib_validate.runtime.camera import Aperture
+
+        return Aperture(self.blades, math.radians(self.rotation_deg), self.ratio)
 
     def validate(self) -> "SceneSpec":
         if self.kind not in KINDS:
@@ -118,15 +130,25 @@ class SceneSpec:
             raise ValueError("lens and sensor must be > 0 mm")
         if self.fstop is not None and not (0 < self.fstop < math.inf):
             raise ValueError(f"f-stop must be finite and > 0, got {self.fstop}")
+        self.aperture  # noqa: B018 - raises ApertureError naming the field
         return self
 
     @property
     def name(self) -> str:
         f = "" if self.fstop is None else f"-f{self.fstop:g}"
-        return f"{self.kind}-s{self.seed}-{self.focus}-{self.width}x{self.height}{f}"
+        ap = self.aperture
+        lens = "" if ap.is_disk else (f"-b{ap.blades}r{self.rotation_deg:g}" if ap.blades
+                                      else "") + (f"-q{ap.ratio:g}" if ap.ratio != 1 else "")
+        return f"{self.kind}-s{self.seed}-{self.focus}-{self.width}x{self.height}{f}{lens}"
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        """The fields; a disk's aperture fields are left out (a disk's cache keys are
+        those of the suite before the aperture's shape)."""
+        d = asdict(self)
+        if self.aperture.is_disk:
+            for k in ("blades", "rotation_deg", "ratio"):
+                d.pop(k)
+        return d
 
     def key(self, spp: int, sharp_spp: int | None = None) -> str:
         """Cache key: the spec, the truth's samples per seed (``spp`` times the kind's
@@ -397,7 +419,9 @@ def lens(spec: SceneSpec) -> dict:
     return {"lens_mm": float(spec.lens_mm), "sensor_width_mm": float(spec.sensor_mm),
             "sensor_fit": "HORIZONTAL", "fstop": fstop, "focus_distance": z_f,
             "unit_scale": 1.0, "focal_length_px": f_px, "blur_parameter": A,
-            "focus_disparity": 1.0 / z_f, "width": spec.width, "height": spec.height}
+            "focus_disparity": 1.0 / z_f, "width": spec.width, "height": spec.height,
+            "aperture_blades": spec.blades, "aperture_rotation": math.radians(spec.rotation_deg),
+            "aperture_ratio": spec.ratio}
 
 
 def camera(spec: SceneSpec):
@@ -406,7 +430,7 @@ def camera(spec: SceneSpec):
 
     c = lens(spec)
     return Camera(spec.width, spec.height, c["blur_parameter"], c["focus_disparity"],
-                  c["focal_length_px"])
+                  c["focal_length_px"], spec.aperture)
 
 
 # --------------------------------------------------------------------------------------
@@ -776,6 +800,9 @@ def passes_header(spec: SceneSpec) -> dict:
     blender = {k: c[k] for k in ("lens_mm", "sensor_width_mm", "sensor_fit", "fstop",
                                  "focus_distance", "unit_scale", "width", "height")}
     blender["sensor_height_mm"] = 24.0  # Blender's default; unused with fit HORIZONTAL
+    if not spec.aperture.is_disk:
+        blender.update({k: c[k] for k in ("aperture_blades", "aperture_rotation",
+                                          "aperture_ratio")})
     return {"camera": {**camera(spec).to_dict(), "blender": blender},
             "engine": "cycles", "scene": spec.to_dict()}
 
