@@ -58,7 +58,7 @@ class ApertureError(ValueError):
 class Aperture:
     """The shape of the lens aperture, with Cycles' conventions (``camera_sample_aperture``
     in ``kernel/camera/camera.h``, ``regular_polygon_sample`` in ``kernel/sample/mapping.h``;
-    ``docs/reference.md``, section "Aperture shape").
+    ``docs/aperture.md``).
 
     The aperture radius ``R`` (``A = R f_px``) is the disk's radius, and a polygon's
     circumradius (its corners lie on the circle of radius ``R``). In the image axes
@@ -240,7 +240,12 @@ class Camera:
 
     # -- Mitsuba -----------------------------------------------------------------------------
     def mitsuba_settings(self) -> dict:
-        """Mitsuba ``thinlens`` parameters: ``fov`` along x, ``aperture_radius``, ``focus_distance``."""
+        """Mitsuba ``thinlens`` parameters: ``fov`` along x, ``aperture_radius``, ``focus_distance``.
+        Mitsuba 3's ``thinlens`` samples a disk only: a camera with blades or a ratio is
+        refused (the Mitsuba cross-checks cover disks; the tracer and Cycles the shapes)."""
+        if not self.aperture.is_disk:
+            raise ValueError(f"Mitsuba's thinlens sensor has a disk aperture only; this "
+                             f"camera has {self.aperture.describe()}")
         lens = self.thin_lens()
         return {
             "fov": self.fov_x_deg,
