@@ -74,8 +74,8 @@ class FocusPullJob:
     """Preview, then full resolution, of one focus and aperture; :meth:`cancel` stops it
     at the next progress step. Run on a thread (:meth:`start`) or in place (:meth:`run`)."""
 
-    def __init__(self, session, d_f: float, A: float):
-        self.session, self.d_f, self.A = session, d_f, A
+    def __init__(self, session, d_f: float, A: float, aperture=None):
+        self.session, self.d_f, self.A, self.aperture = session, d_f, A, aperture
         self.preview = None
         self.preview_shown = False
         self.full = None
@@ -94,18 +94,21 @@ class FocusPullJob:
         from mpib_validate.runtime.refocus import Cancelled
 
         try:
-            if not self.session.serves(self.A):
+            # the MPI is built for the aperture's reach (A, or A / ratio for a ratio < 1)
+            build_A = self.session.request(self.d_f, self.A, self.aperture).build_blur_parameter
+            if not self.session.serves(build_A):
                 # first pull after a render: a preview from subsampled passes while the
                 # MPI is built (1/16 of its cost); the build itself is not cancelled, or
                 # a slider dragged meanwhile would never let it finish
                 self.preview = self.session.quick_preview(self.d_f, self.A, PREVIEW_SCALE,
-                                                          self._progress)
-                self.session.mpi_for(self.A)
+                                                          self._progress, self.aperture)
+                self.session.mpi_for(build_A)
                 self._progress(0.0)
             else:
                 self.preview = self.session.render(self.d_f, self.A, PREVIEW_SCALE,
-                                                   self._progress)
-            self.full = self.session.render(self.d_f, self.A, 1.0, self._progress)
+                                                   self._progress, self.aperture)
+            self.full = self.session.render(self.d_f, self.A, 1.0, self._progress,
+                                            self.aperture)
         except Cancelled:
             self.cancelled = True
         except operators._errors() as exc:
@@ -189,7 +192,7 @@ def pull(scene, blocking: bool | None = None) -> bool:
         return fit.image(img, shape)
     if State.job is not None:
         State.job.cancel()
-    job = FocusPullJob(session, d_f, cam.blur_parameter)
+    job = FocusPullJob(session, d_f, cam.blur_parameter, cam.aperture)
     if blocking is None:
         blocking = bpy.app.background
     if blocking:

@@ -143,7 +143,8 @@ def compute(request: dict, progress=None):
         except ValueError as exc:
             raise PassError(str(exc)) from None
         d_f = focus_from_pixel(passes, x, y)
-    result = refocus(RefocusRequest(passes, cam.blur_parameter, d_f, request["preset"]),
+    result = refocus(RefocusRequest(passes, cam.blur_parameter, d_f, request["preset"],
+                                    aperture=cam.aperture),
                      progress=lambda f: report(0.05 + 0.9 * f))
     result.image = fit.image(result.image, full.depth.shape)
     result.info["camera"] = saved_camera(cam, d_f, request)

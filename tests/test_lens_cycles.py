@@ -94,3 +94,47 @@ def test_emitter_footprints_match_cycles(side):
     bad = _footprints(HEX, side, DISK)
     assert max(max(abs(e) for e in r["axis_err_pct"]) for r in bad) > 5.0
     assert min(r["iou"] for r in bad) < 0.9
+
+
+def test_the_extension_reads_the_lens_from_the_scene_camera():
+    """The extension's one camera reading path (runtime/blender/camera.read_camera) takes
+    blades, rotation and ratio from the scene camera, keyed values at the frame
+    included; the stamp note carries them to ``mpib refocus``; 1 or 2 blades read as a
+    disk, as Cycles renders them."""
+    from mpib_validate.runtime.blender.camera import read_camera
+    from mpib_validate.runtime.camera import blender_camera
+    from mpib_validate.runtime.io.camera_header import (LENS_FIELDS, read_camera as header_camera,
+                                                        resolve, stamp_note)
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    sc = bpy.context.scene
+    sc.render.resolution_x, sc.render.resolution_y = 64, 48
+    data = bpy.data.cameras.new("Camera")
+    obj = bpy.data.objects.new("Camera", data)
+    sc.collection.objects.link(obj)
+    sc.camera = obj
+    dof = data.dof
+    dof.use_dof = True
+    dof.aperture_blades, dof.aperture_rotation = 6, math.radians(15)
+    dof.aperture_ratio = 1.5
+    dof.keyframe_insert("aperture_ratio", frame=1)
+    dof.aperture_ratio = 2.0
+    dof.keyframe_insert("aperture_ratio", frame=11)
+
+    def lens(frame):
+        fields = read_camera(sc, frame).lens()
+        fields["focus_distance"] = 10.0
+        return fields
+
+    at1, at11 = (blender_camera(**lens(f)).aperture for f in (1, 11))
+    assert (at1.blades, at1.ratio) == (6, 1.5)
+    assert at1.rotation == pytest.approx(math.radians(15), rel=1e-7)  # Blender's float32
+    assert at11.ratio == pytest.approx(2.0) and at11.blades == 6
+    note = stamp_note(lens(1))
+    assert note is not None
+    got = resolve(header_camera({"Note": note}, "r.exr"), {}, 64, 48, "r.exr").camera.aperture
+    assert got == at1
+    assert set(LENS_FIELDS) <= set(lens(1))
+    dof.aperture_blades = 2
+    sc.frame_set(1)
+    assert blender_camera(**lens(None)).aperture.blades == 0

@@ -304,7 +304,8 @@ def blender_focal_length_px(lens_mm: float, sensor_width_mm: float, sensor_heigh
 def blender_camera(lens_mm: float, sensor_width_mm: float, sensor_height_mm: float,
                    sensor_fit: str, width: int, height: int, fstop: float,
                    focus_distance: float, unit_scale: float = 1.0,
-                   aperture: Aperture = DISK) -> Camera:
+                   aperture_blades: int = 0, aperture_rotation: float = 0.0,
+                   aperture_ratio: float = 1.0) -> Camera:
     """The :class:`Camera` that a Blender perspective camera renders with: the one
     conversion from Blender's lens settings (the add-on, ``mpib refocus`` and the EXR
     header camera all call it).
@@ -318,7 +319,9 @@ def blender_camera(lens_mm: float, sensor_width_mm: float, sensor_height_mm: flo
     lens in mm as 1e-3 Blender units whatever the scene's Unit Scale (a Cycles depth of
     field render does not change with ``unit_settings.scale_length``, checked in the
     tests), so a Blender render has 1; another value is for depth in other units.
-    ``aperture``: the blades, rotation and ratio (:func:`blender_aperture`).
+    ``aperture_blades``, ``aperture_rotation`` (radians), ``aperture_ratio``: the
+    camera's Depth of Field > Aperture (:func:`blender_aperture`: 1 or 2 blades are a
+    disk, as Cycles renders them).
     """
     for name, value in (("lens", lens_mm), ("sensor width", sensor_width_mm),
                         ("sensor height", sensor_height_mm), ("unit scale", unit_scale)):
@@ -331,7 +334,8 @@ def blender_camera(lens_mm: float, sensor_width_mm: float, sensor_height_mm: flo
     f_px = blender_focal_length_px(lens_mm, sensor_width_mm, sensor_height_mm, sensor_fit,
                                    width, height)
     R = lens_mm * 1e-3 / unit_scale / (2.0 * fstop)
-    return Camera(width, height, R * f_px, 1.0 / focus_distance, f_px, aperture)
+    return Camera(width, height, R * f_px, 1.0 / focus_distance, f_px,
+                  blender_aperture(aperture_blades, aperture_rotation, aperture_ratio))
 
 
 def blender_orthographic_camera(ortho_scale: float, sensor_fit: str, width: int, height: int,

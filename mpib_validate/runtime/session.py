@@ -285,9 +285,12 @@ class RefocusSession:
     def far_limit(self) -> float:
         return self._template.far_limit
 
-    def request(self, focus_disparity: float, blur_parameter: float) -> RefocusRequest:
-        """The request of a render of this session's picture at ``d_f`` and ``A``."""
-        return self._template.with_lens(blur_parameter, focus_disparity)
+    def request(self, focus_disparity: float, blur_parameter: float,
+                aperture=None) -> RefocusRequest:
+        """The request of a render of this session's picture at ``d_f`` and ``A``, with
+        the lens's ``aperture`` (None: a disk)."""
+        request = self._template.with_lens(blur_parameter, focus_disparity)
+        return request if aperture is None else dataclasses.replace(request, aperture=aperture)
 
     @classmethod
     def from_files(cls, path, depth_path=None, view_layer=None, **kwargs) -> "RefocusSession":
@@ -366,7 +369,7 @@ class RefocusSession:
         if not self._owns(request):
             raise ValueError("the request is not this session's (other passes, preset, far "
                              "limit or background): make it with RefocusSession.request")
-        built, how = self.mpi_for(request.blur_parameter, progress)
+        built, how = self.mpi_for(request.build_blur_parameter, progress)
         return built, {"mpi": how}
 
     def _preview(self, built: BuiltMPI, s: int) -> BuiltMPI:
@@ -383,19 +386,20 @@ class RefocusSession:
             return p
 
     def render(self, focus_disparity: float, blur_parameter: float, scale: float = 1.0,
-               progress=None) -> RefocusResult:
+               progress=None, aperture=None) -> RefocusResult:
         """Refocus at ``d_f`` (1/scene-unit) with ``A`` (px per unit disparity, at full
         resolution), at ``scale`` (1, or ``1/s``: an ``ceil(H/s) x ceil(W/s)`` preview).
 
         ``info`` as :func:`refocus` gives, plus ``mpi`` (cached / built),
         ``mpi_blur_parameter`` (``A_b``), ``scale``, ``composite_seconds`` and
         ``cache_bytes``. ``progress(fraction)`` may raise to cancel, as for
-        :func:`refocus`."""
-        request = self.request(focus_disparity, blur_parameter)
+        :func:`refocus`. ``aperture``: the lens's shape (None: a disk); the MPI is built
+        for its reach (``RefocusRequest.build_blur_parameter``)."""
+        request = self.request(focus_disparity, blur_parameter, aperture)
         s = preview_factor(scale)
         t0 = time.perf_counter()
         first, second = split_progress(progress)
-        built, how = self.mpi_for(blur_parameter, first)
+        built, how = self.mpi_for(request.build_blur_parameter, first)
         target = self._preview(built, s)
         t1 = time.perf_counter()
         img = render_built(target, request, second, scale=s)
@@ -406,14 +410,14 @@ class RefocusSession:
         return RefocusResult(img, info)
 
     def quick_preview(self, focus_disparity: float, blur_parameter: float, scale: float,
-                      progress=None) -> RefocusResult:
+                      progress=None, aperture=None) -> RefocusResult:
         """A ``1/s`` preview before the MPI exists (the first focus pull after a render):
         an MPI built from the passes subsampled at the centre of each ``s x s`` block
         (:func:`subsample_passes`) for ``A / s``, about ``1/s^2`` of the full build's
         cost; not kept. It shows the same focus as :meth:`render` at ``scale`` but from
         coarser layers (edges placed to the block, thin structures may drop out); later
-        previews come from the kept MPI."""
-        request = self.request(focus_disparity, blur_parameter)
+        previews come from the kept MPI. ``aperture`` as for :meth:`render`."""
+        request = self.request(focus_disparity, blur_parameter, aperture)
         s = preview_factor(scale)
         t0 = time.perf_counter()
         small = dataclasses.replace(request, passes=subsample_passes(self.passes, s),

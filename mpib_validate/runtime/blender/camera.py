@@ -77,6 +77,11 @@ class BlenderCamera:
     frame: int
     ortho_scale: float = 0.0  # an orthographic camera's view width (Orthographic Scale)
     clip_end: float = 0.0  # the camera's clip end: no visible depth lies beyond it
+    #: Depth of Field > Aperture: blades (0, or Blender's 1 to 16; Cycles renders 1 and 2
+    #: as a disk), rotation (radians), ratio (docs/aperture.md)
+    aperture_blades: int = 0
+    aperture_rotation: float = 0.0
+    aperture_ratio: float = 1.0
 
     def lens(self) -> dict:
         """Keyword arguments of :func:`mpib_validate.runtime.camera.blender_camera` (and
@@ -84,7 +89,10 @@ class BlenderCamera:
         return {"lens_mm": self.lens_mm, "sensor_width_mm": self.sensor_width_mm,
                 "sensor_height_mm": self.sensor_height_mm, "sensor_fit": self.sensor_fit,
                 "fstop": self.fstop, "focus_distance": self.focus_distance,
-                "unit_scale": 1.0, "width": self.width, "height": self.height}
+                "unit_scale": 1.0, "width": self.width, "height": self.height,
+                "aperture_blades": self.aperture_blades,
+                "aperture_rotation": self.aperture_rotation,
+                "aperture_ratio": self.aperture_ratio}
 
     def orthographic(self) -> dict:
         """Keyword arguments of
@@ -182,6 +190,9 @@ def read_camera(scene, frame=None) -> BlenderCamera:
     cam_obj, target = evaluated(cam_obj), evaluated(target)
     cam = cam_obj.data
     lens, fstop = float(cam.lens), float(cam.dof.aperture_fstop)
+    dof = cam.dof
+    blades, rotation = int(dof.aperture_blades), float(dof.aperture_rotation)
+    ratio = float(dof.aperture_ratio)
     focus = focus_depth(cam_obj, target)
     if frame is not None and not _main_thread():  # a render job's thread: the keys
         from mpib_validate.runtime.blender.compat import fcurve_value
@@ -189,6 +200,9 @@ def read_camera(scene, frame=None) -> BlenderCamera:
         data = scene.camera.data
         lens = float(fcurve_value(data, "lens", frame, lens))
         fstop = float(fcurve_value(data, "dof.aperture_fstop", frame, fstop))
+        blades = int(round(fcurve_value(data, "dof.aperture_blades", frame, blades)))
+        rotation = float(fcurve_value(data, "dof.aperture_rotation", frame, rotation))
+        ratio = float(fcurve_value(data, "dof.aperture_ratio", frame, ratio))
         if target is None:
             focus = float(fcurve_value(data, "dof.focus_distance", frame, focus))
     W, H = render_size(scene)
@@ -202,7 +216,8 @@ def read_camera(scene, frame=None) -> BlenderCamera:
         pixel_aspect=float(r.pixel_aspect_x) / float(r.pixel_aspect_y),
         region=render_region(scene, W, H), use_dof=bool(cam.dof.use_dof),
         film_transparent=bool(r.film_transparent), frame=int(scene.frame_current),
-        ortho_scale=float(cam.ortho_scale), clip_end=float(cam.clip_end))
+        ortho_scale=float(cam.ortho_scale), clip_end=float(cam.clip_end),
+        aperture_blades=blades, aperture_rotation=rotation, aperture_ratio=ratio)
 
 
 def refusal(cam: BlenderCamera, *, focus: bool = True, dof: bool = True,

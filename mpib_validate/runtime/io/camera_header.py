@@ -244,8 +244,13 @@ def read_camera(header: dict, path) -> HeaderCamera | None:
 # -- writing -----------------------------------------------------------------------------
 
 def camera_json(blender: dict) -> str:
-    """Compact JSON ``{"camera": {"blender": ...}}`` of a Blender camera, checked."""
+    """Compact JSON ``{"camera": {"blender": ...}}`` of a Blender camera, checked. A
+    disk's aperture fields (fewer than 3 blades, ratio 1) are left out: a disk is what a
+    header without them means."""
     fields = _check_blender(blender, "the camera")
+    if fields.get("aperture_blades", 0) < 3 and fields.get("aperture_ratio", 1.0) == 1.0:
+        for k in APERTURE_FIELDS:
+            fields.pop(k, None)
     return json.dumps({"camera": {"blender": fields}}, separators=(",", ":"))
 
 
