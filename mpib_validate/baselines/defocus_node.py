@@ -90,7 +90,8 @@ def _write_input(path: Path, rgba: np.ndarray, depth: np.ndarray) -> None:
 
 def _setup(bpy, in_path: Path, width: int, height: int, camera_settings: dict, *,
            f_stop: float, blur_max: float, sensor_fit: str, sensor_height_mm: float,
-           bokeh: str, use_zbuffer: bool, z_scale: float, threads: int, with_node: bool):
+           bokeh: str, use_zbuffer: bool, z_scale: float, threads: int, with_node: bool,
+           angle: float = 0.0):
     bpy.ops.wm.read_factory_settings(use_empty=True)
     sc = bpy.context.scene
     r = sc.render
@@ -138,7 +139,7 @@ def _setup(bpy, in_path: Path, width: int, height: int, camera_settings: dict, *
     _compat.set_option(node, "f_stop", float(f_stop))
     _compat.set_option(node, "blur_max", float(blur_max))
     _compat.set_option(node, "bokeh", bokeh)
-    _compat.set_option(node, "angle", 0.0)
+    _compat.set_option(node, "angle", float(angle))
     if "use_preview" in node.bl_rna.properties:  # 4.x: on by default, a low-quality mode
         node.use_preview = False
     nt.links.new(colour, node.inputs["Image"])
@@ -159,7 +160,7 @@ def defocus(rgb: np.ndarray, depth: np.ndarray, camera_settings: dict, *,
             blur_max: float | None = None, f_stop: float | None = None,
             sensor_fit: str = "HORIZONTAL", sensor_height_mm: float = DEFAULT_SENSOR_HEIGHT_MM,
             bokeh: str = "CIRCLE", use_zbuffer: bool = True, z_scale: float = 1.0,
-            threads: int = 0, repeats: int = 1, timing: bool = True,
+            threads: int = 0, repeats: int = 1, timing: bool = True, angle: float = 0.0,
             info: dict | None = None,
             keep: str | os.PathLike | None = None) -> tuple[np.ndarray, float]:
     """Blur ``rgb`` with Blender's Defocus node.
@@ -174,6 +175,8 @@ def defocus(rgb: np.ndarray, depth: np.ndarray, camera_settings: dict, *,
             computes over ``depth`` (:func:`node_radius`), rounded up, plus 1.
         f_stop: the node's own f-stop; default the camera's.
         sensor_fit: the camera's sensor fit the node sees (``AUTO`` shows its defect).
+        bokeh, angle: the node's Bokeh Type (``CIRCLE``, ``TRIANGLE`` to ``OCTAGON``) and
+            its rotation in radians.
         use_zbuffer, z_scale: Z-buffer mode (default) or the node's scale mode (radius
             ``= Z * z_scale`` pixels, clamped to ``blur_max``).
         repeats: time the node this many times (the fastest run counts).
@@ -211,7 +214,7 @@ def defocus(rgb: np.ndarray, depth: np.ndarray, camera_settings: dict, *,
         _write_input(in_path, rgba, depth)
         kw = dict(f_stop=n, blur_max=blur_max, sensor_fit=sensor_fit,
                   sensor_height_mm=sensor_height_mm, bokeh=bokeh, use_zbuffer=use_zbuffer,
-                  z_scale=z_scale, threads=threads)
+                  z_scale=z_scale, threads=threads, angle=angle)
         base_t, node_t = [], []
         for _ in range(max(1, int(repeats))):
             if timing:
