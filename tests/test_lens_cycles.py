@@ -138,3 +138,20 @@ def test_the_extension_reads_the_lens_from_the_scene_camera():
     dof.aperture_blades = 2
     sc.frame_set(1)
     assert blender_camera(**lens(None)).aperture.blades == 0
+
+
+def test_lens_bench_runs_tiny(tmp_path):
+    """``mpib bench --suite lens`` on one kind at 64x48: a row per focus and lens, the
+    lens read back from the passes' header, the summary's targets computed."""
+    from mpib_validate.bench import lens as bench_lens
+
+    res = bench_lens.run(tmp_path, config={"width": 64, "height": 48, "spp": 4,
+                                           "sharp_spp": 4, "kinds": ("spheres",)})
+    rows = res["rows"]
+    assert len(rows) == 2 * len(bench_lens.LENSES)
+    assert {r["lens"] for r in rows} == {"disk", "6 blades at 15 deg", "disk, ratio 1.5"}
+    assert all(r["aperture_read"] == r["lens"] for r in rows)
+    assert all(math.isfinite(r["default_psnr_ob"]) and math.isfinite(r["node_psnr_ob"])
+               for r in rows)
+    assert {"beats_node_everywhere", "within_half_db"} <= set(res["summary"])
+    assert (tmp_path / "lens.md").is_file()

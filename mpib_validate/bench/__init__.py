@@ -24,7 +24,7 @@ import importlib
 from pathlib import Path
 
 SUITES = ("tracer", "compositor", "refocus", "photos", "addon", "hardcases", "references",
-          "scaling", "photosize", "blender", "official")
+          "scaling", "photosize", "blender", "official", "lens")
 
 
 def run_bench(out: Path, suite: str = "all", quick: bool = True, executor=None) -> dict:
