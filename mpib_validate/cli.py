@@ -94,12 +94,18 @@ def _parse_size(text: str) -> tuple[int, int]:
     return w, h
 
 
-def _sample_set(args):
+def _sample_set(args, aperture=None):
+    """The tracer's samples over the camera's ``aperture`` (None: the disk); the
+    official grid is of the disk only."""
     from mpib_validate.runtime import samples
 
     if args.aperture == "grid":
+        if aperture is not None and not aperture.is_disk:
+            raise CliError(f"--aperture grid is the official generator's grid over a disk; "
+                           f"this scene's camera has {aperture.describe()}: use --aperture "
+                           f"sobol")
         return samples.grid(args.grid_side, pixel=args.pixel)
-    return samples.stratified(args.spp, seed=args.seed, pixel=args.pixel)
+    return samples.stratified(args.spp, seed=args.seed, pixel=args.pixel, aperture=aperture)
 
 
 # --------------------------------------------------------------------------------------
@@ -125,6 +131,14 @@ def cmd_generate(args) -> int:
     budget.check_pixels(w, h, "--size")
     budget.check(budget.generate_estimate(w, h), _limit(args))
     scene = generate(args.seed, args.family, args.case, GeneratorSettings(width=w, height=h))
+    given = _aperture_given(args)
+    if any(v is not None for v in given.values()):
+        from mpib_validate.runtime.io.camera_header import CameraHeaderError, resolve_aperture
+
+        try:
+            scene = scene.with_camera(aperture=resolve_aperture(given))
+        except CameraHeaderError as exc:
+            raise CliError(str(exc)) from None
     path = save_scene(scene, args.out)
     cam = scene.camera
     print(f"wrote {path}: {len(scene.cards)} cards, {cam.width}x{cam.height}, "
@@ -173,10 +187,16 @@ def cmd_render(args) -> int:
     elif args.engine == "mitsuba":
         import mitsuba_scenes
 
+        if not scene.camera.aperture.is_disk:
+            raise CliError(f"--engine mitsuba: Mitsuba's thinlens sensor has a disk aperture "
+                           f"only; this scene's camera has {scene.camera.aperture.describe()} "
+                           f"(use --engine trace or cycles)")
+
         result = mitsuba_scenes.render_result(scene, args.spp, seed=args.seed,
                                               variant=args.variant)
     else:
-        result = render(scene, _sample_set(args), backend=args.backend, lookup=args.lookup,
+        result = render(scene, _sample_set(args, scene.camera.aperture), backend=args.backend,
+                        lookup=args.lookup,
                         order=args.order, progress=not args.quiet)
     written = write_render(args.output, result, scene, preview=not args.no_preview)
     m = result.meta
@@ -768,6 +788,12 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--size", type=_parse_size, default=(256, 256), help="WxH (default 256x256)")
     g.add_argument("--out", required=True, help="output scene directory")
     g.add_argument("--force", action="store_true", help="replace a scene already in --out")
+    g.add_argument("--blades", type=int, metavar="N",
+                   help="the camera's aperture blades: 0 (a disk, default) or 3 to 16")
+    g.add_argument("--rotation", type=float, metavar="DEG",
+                   help="the blades' rotation in degrees, counter-clockwise on screen")
+    g.add_argument("--ratio", type=float,
+                   help="anamorphic ratio: the aperture's width is divided by it (default 1)")
     _add_memory_option(g)
     g.set_defaults(func=cmd_generate)
 

@@ -316,3 +316,26 @@ def test_shaped_eq1_gap_shrinks_with_subapertures_and_fast_paths_agree():
         assert psnr(plain, out, peak=float(plain.max())) > 120.0
     disk = C.composite(mpi, cam.blur_parameter, cam.focus_disparity, PLAIN)
     assert psnr(plain, disk, peak=float(plain.max())) < 60.0  # the shape is not ignored
+
+
+def test_generate_and_render_carry_the_aperture(tmp_path):
+    """``mpib generate --blades/--rotation/--ratio`` writes the camera's aperture into
+    scene.json; ``mpib render`` traces it with samples of that aperture; the official
+    grid (a disk's) and Mitsuba (a disk only) are refused in one line."""
+    scene_dir = tmp_path / "s"
+    r = mpib("generate", "--seed", 1, "--size", "48x32", "--out", scene_dir, "--blades", 6,
+             "--rotation", 15, "--ratio", 1.5)
+    assert r.returncode == 0, r.stderr
+    cam = json.loads((scene_dir / "scene.json").read_text())["camera"]
+    assert cam["aperture"]["blades"] == 6 and cam["aperture"]["ratio"] == 1.5
+    assert cam["aperture"]["rotation"] == pytest.approx(math.radians(15))
+    r = mpib("render", scene_dir, "-o", tmp_path / "r.exr", "--spp", 16, "--backend",
+             "numpy", "--no-preview", "-q")
+    assert r.returncode == 0, r.stderr
+    assert "blades6" in r.stdout
+    for extra, word in ((["--aperture", "grid"], "--aperture grid"),
+                        (["--engine", "mitsuba"], "--engine mitsuba")):
+        r = mpib("render", scene_dir, "-o", tmp_path / "x.exr", "--no-preview", "-q", *extra)
+        assert r.returncode == 2 and word in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    r = mpib("generate", "--out", tmp_path / "t", "--blades", 2)
+    assert r.returncode == 2 and "--blades" in r.stderr
