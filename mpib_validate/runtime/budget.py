@@ -454,6 +454,24 @@ def refocus_estimate(disparity: np.ndarray, blur_parameter: float, focus_dispari
                     largest_radius_px=largest, peak=parts["inputs"] + max(phases))
 
 
+#: The least any refocus of a picture needs per pixel, whatever its disparity: the
+#: inputs it keeps and its writing phase (:func:`refocus_estimate`'s ``inputs`` and
+#: ``writing`` parts with the 16 B/px result they hold).
+REFOCUS_FLOOR_BYTES_PER_PX = INPUT_BYTES_PER_PX + WRITE_BYTES_PER_PX + 16
+
+
+def reading_estimate(what: str, reads: dict, pixels: int) -> Estimate:
+    """The memory a refocus needs before its disparity is known, from the inputs'
+    headers: decoding the inputs (``reads``: label -> peak bytes, each held while the
+    next is read, so summed) and at least :data:`REFOCUS_FLOOR_BYTES_PER_PX` per pixel
+    for the refocus itself; the larger of the two. Checked before any pixel is decoded,
+    so that a small file declaring a huge image is refused at the size it declares."""
+    reads = {k: int(v) for k, v in reads.items()}
+    floor = REFOCUS_FLOOR_BYTES_PER_PX * int(pixels)
+    return Estimate(what, {**reads, "refocusing (at the least)": floor},
+                    peak=max(sum(reads.values()), floor))
+
+
 # --------------------------------------------------------------------------------------
 # Rendering and generating
 

@@ -118,15 +118,27 @@ def _colour_prefix(img, all_in_focus: bool = True, view_layer: str | None = None
                    f"'{img.path}'; channels: {', '.join(sorted(ch))}")
 
 
-def _refuse_non_finite(rgba: np.ndarray, source: str) -> None:
+def _refuse_non_finite(rgba: np.ndarray, source: str, what: str = "colour",
+                       letters: str = "RGBA") -> None:
     """Raise :class:`PassError` naming ``source`` and the first NaN or infinite value
     (one would turn a whole blurred channel into NaN)."""
     bad = ~np.isfinite(rgba)
     if bad.any():
         y, x, c = np.argwhere(bad)[0]
-        raise PassError(f"{source}: colour is NaN or infinite at {int(bad.sum())} value(s), "
-                        f"first at (row {y}, column {x}, channel {'RGBA'[c]}): "
+        raise PassError(f"{source}: {what} is NaN or infinite at {int(bad.sum())} value(s), "
+                        f"first at (row {y}, column {x}, channel {letters[c]}): "
                         f"{rgba[y, x, c]}")
+
+
+def image_rgba(img, prefix: str, source: str | None = None) -> np.ndarray:
+    """``(H, W, 4)`` float32 colour and alpha of the channels ``prefix`` + R, G, B(, A)
+    of an EXR image: the one way an image enters a result (the input's colour, a
+    layered render's groups and world, a background render, an image compared), so
+    every one is checked the same way. Raises :class:`PassError` naming ``source``
+    (default: the file and the channels) and the first NaN or infinite value."""
+    rgba = rgba_from(img, prefix)
+    _refuse_non_finite(rgba, source or f"'{img.path}' ({prefix or 'R, G, B'})")
+    return rgba
 
 
 def read_colour(path, all_in_focus: bool = True, view_layer: str | None = None) -> np.ndarray:
@@ -134,10 +146,7 @@ def read_colour(path, all_in_focus: bool = True, view_layer: str | None = None) 
     Raises :class:`PassError` naming the file and the first pixel for NaN or infinite
     values."""
     img = read_exr(path)
-    prefix = _colour_prefix(img, all_in_focus, view_layer)
-    rgba = rgba_from(img, prefix)
-    _refuse_non_finite(rgba, f"'{path}' ({prefix or 'R, G, B'})")
-    return rgba
+    return image_rgba(img, _colour_prefix(img, all_in_focus, view_layer))
 
 
 def _depth_channel(img, path) -> np.ndarray:
@@ -177,10 +186,9 @@ def load_passes(path, depth_path=None, view_layer: str | None = None) -> Passes:
     picks one of several Blender view layers in the file."""
     img = read_exr(path)
     prefix = _colour_prefix(img, view_layer=view_layer)
-    rgba = rgba_from(img, prefix)
-    colour = rgba[..., :3]
     source = f"'{path}' ({prefix or 'R, G, B'})"
-    _refuse_non_finite(rgba, source)
+    rgba = image_rgba(img, prefix, source)
+    colour = rgba[..., :3]
     camera = read_camera(img.header, path)
     if depth_path is None:
         try:
@@ -270,7 +278,7 @@ def load_layered_passes(path, layered: bool | None = None,
         if f"{name}.Depth.Z" not in img.channels:
             raise PassError(f"no Depth pass for view layer '{name}' in '{path}' (enable the "
                             f"Z pass of every mpib_group_ view layer)")
-        rgba = rgba_from(img, f"{name}.Combined.").astype(np.float64)
+        rgba = image_rgba(img, f"{name}.Combined.").astype(np.float64)
         z = img.channels[f"{name}.Depth.Z"].astype(np.float64)
         groups.append((name, rgba[..., :3], np.clip(rgba[..., 3], 0.0, 1.0), z))
     if all(GROUP_LAYER.match(g[0]) for g in groups):  # the renderer's order, far to near
@@ -283,7 +291,7 @@ def load_layered_passes(path, layered: bool | None = None,
         # the world behind the farthest group (blender.layers: the artist's film was
         # opaque): Combined + Environment is that layer over the world, opaque; its
         # own coverage still tells the world (disparity 0) from the group's content
-        env = rgba_from(img, f"{far}.Environment.")[..., :3].astype(np.float64)
+        env = image_rgba(img, f"{far}.Environment.")[..., :3].astype(np.float64)
         _, P0, a0, z0 = groups[0]
         groups[0] = (far, P0 + env, np.ones_like(a0), z0, a0)
     colour, alpha = composite_over([g[1:] for g in groups])
@@ -318,7 +326,7 @@ def read_background(path, shape, far_limit: float = DEFAULT_FAR_LIMIT):
     tells :func:`passes.known_background_mask` which hidden pixels it shows). Raises
     :class:`PassError` naming the file if its size is not ``shape``."""
     img = read_exr(path)
-    rgba = rgba_from(img, _colour_prefix(img, True))
+    rgba = image_rgba(img, _colour_prefix(img, True))
     if rgba.shape[:2] != tuple(shape):
         raise PassError(f"sizes differ: the background '{path}' is {rgba.shape[1]}x"
                         f"{rgba.shape[0]}, the passes are {shape[1]}x{shape[0]}")
@@ -479,12 +487,21 @@ def focus_from_pixel(passes: Passes, x: int, y: int, far_limit: float = DEFAULT_
     return float(np.median(D[max(0, y - 1):y + 2, max(0, x - 1):x + 2]))
 
 
+def refuse_non_finite_result(image: np.ndarray, path) -> None:
+    """The last guard before an output is written: a refocused image holding NaN or
+    infinite values is never written (every input was checked, so this is a bug)."""
+    if not np.isfinite(image).all():
+        raise PassError(f"the refocused image for '{path}' holds NaN or infinite values (a "
+                        f"bug; please report it with the inputs); nothing was written")
+
+
 def write_result(path, result: RefocusResult, preview: bool = True) -> list[Path]:
     """EXR (premultiplied RGBA, linear; the settings in the ``mpib`` attribute) and PNG."""
     from mpib_validate.runtime.io.exr import channels_from_rgba, write_exr
     from mpib_validate.runtime.io.preview import write_png
 
     path = Path(path)
+    refuse_non_finite_result(result.image, path)
     img = result.image.copy()
     img[..., :3] *= img[..., 3:4]
     write_exr(path, channels_from_rgba(img), attributes={"mpib": json.dumps(result.info, default=float)})

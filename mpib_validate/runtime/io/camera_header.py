@@ -106,26 +106,82 @@ class HeaderCamera:
 
 # -- checking ------------------------------------------------------------------------------
 
+#: JSON read from files (headers, notes, scene.json) nested deeper than this is refused:
+#: a camera header is four levels deep, and Python's parser and writer recurse once per
+#: level (a RecursionError near a thousand).
+MAX_JSON_DEPTH = 64
+
+
+def _json_depth(obj) -> int:
+    """Nesting depth of parsed JSON (a scalar is 0), without recursion."""
+    deepest, stack = 0, [(obj, 0)]
+    while stack:
+        o, d = stack.pop()
+        if isinstance(o, dict):
+            o = list(o.values())
+        if isinstance(o, list):
+            deepest = max(deepest, d + 1)
+            if d + 1 > MAX_JSON_DEPTH:
+                break
+            stack.extend((v, d + 1) for v in o)
+    return deepest
+
+
+def load_json(text, source: str, error=None, raw: bool = False):
+    """Parse JSON read from a file: ``json.loads`` (or, with ``raw``, the first JSON
+    value of ``text`` as ``(value, end)``), refusing malformed text, nesting deeper than
+    :data:`MAX_JSON_DEPTH` and integers of more than Python's 4300 digits with one
+    ``error`` (default :class:`CameraHeaderError`) that names ``source``."""
+    error = error or CameraHeaderError
+    try:
+        out = json.JSONDecoder().raw_decode(text) if raw else json.loads(text)
+    except RecursionError:
+        raise error(f"{source} is JSON nested too deeply (more than {MAX_JSON_DEPTH} "
+                    f"levels)") from None
+    except (TypeError, ValueError) as exc:
+        raise error(f"{source} is not valid JSON ({' '.join(str(exc).split())[:200]})") from None
+    if _json_depth(out[0] if raw else out) > MAX_JSON_DEPTH:
+        raise error(f"{source} is JSON nested too deeply (more than {MAX_JSON_DEPTH} levels)")
+    return out
+
+
+def shown(value) -> str:
+    """``repr(value)``, shortened for a message (a 400-digit integer, a long string)."""
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) >= 10 ** 15:
+        return f"an integer of {len(str(abs(value)))} digits"
+    text = repr(value)
+    return text if len(text) <= 80 else text[:60] + "..." + text[-10:]
+
 def _number(value, where: str, positive: bool = True) -> float:
     ok = isinstance(value, (int, float)) and not isinstance(value, bool)
     if ok:
-        value = float(value)
-        ok = math.isfinite(value) and (value > 0 if positive else value >= 0)
+        try:
+            number = float(value)
+        except OverflowError:  # an integer beyond the float range
+            number = math.inf
+        ok = math.isfinite(number) and (number > 0 if positive else number >= 0)
     if not ok:
         raise CameraHeaderError(f"{where} must be a finite number {'>' if positive else '>='} 0, "
-                                f"got {value!r}")
-    return value
+                                f"got {shown(value)}")
+    return number
+
+
+#: The largest image side a header may state (the renderers index pixels with 32-bit
+#: integers).
+MAX_SIDE = (1 << 31) - 1
 
 
 def _size(value, where: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise CameraHeaderError(f"{where} must be a whole number of pixels >= 1, got {value!r}")
+    if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= MAX_SIDE:
+        raise CameraHeaderError(f"{where} must be a whole number of pixels from 1 to {MAX_SIDE}, "
+                                f"got {shown(value)}")
     return int(value)
 
 
 def _fit(value, where: str) -> str:
     if not isinstance(value, str) or value.upper() not in SENSOR_FITS:
-        raise CameraHeaderError(f"{where} must be one of {', '.join(SENSOR_FITS)}, got {value!r}")
+        raise CameraHeaderError(f"{where} must be one of {', '.join(SENSOR_FITS)}, got "
+                                f"{shown(value)}")
     return value.upper()
 
 
@@ -157,7 +213,7 @@ def check_field(name: str, value, where: str):
 
 def _check_blender(obj, where: str) -> dict:
     if not isinstance(obj, dict):
-        raise CameraHeaderError(f"{where} must be a JSON object, got {obj!r}")
+        raise CameraHeaderError(f"{where} must be a JSON object, got {shown(obj)}")
     missing = [k for k in BLENDER_FIELDS if k not in obj]
     if missing:
         raise CameraHeaderError(f"{where} lacks field(s) {', '.join(missing)}")
@@ -192,17 +248,14 @@ def _check_image(obj: dict, where: str) -> dict:
 def parse_camera_json(text, source: str) -> HeaderCamera | None:
     """The camera of one header JSON object (see the module docstring), ``None`` when
     it holds none. ``source`` names the file and attribute in messages."""
-    try:
-        doc = json.loads(text)
-    except (TypeError, ValueError) as exc:
-        raise CameraHeaderError(f"{source} is not valid JSON ({exc})") from None
+    doc = load_json(text, source)
     if not isinstance(doc, dict):
         raise CameraHeaderError(f"{source} must hold a JSON object, got {type(doc).__name__}")
     if "camera" not in doc:
         return None
     cam = doc["camera"]
     if not isinstance(cam, dict):
-        raise CameraHeaderError(f"{source} field camera must be a JSON object, got {cam!r}")
+        raise CameraHeaderError(f"{source} field camera must be a JSON object, got {shown(cam)}")
     blender = _check_blender(cam["blender"], f"{source} field camera.blender") if "blender" in cam else {}
     image = _check_image(cam, f"{source} field camera")
     if not blender and not image:
@@ -223,10 +276,10 @@ def read_camera(header: dict, path) -> HeaderCamera | None:
         text = note[note.index(NOTE_MARKER + "{") + len(NOTE_MARKER):]
         source = f"'{path}' header '{NOTE_ATTRIBUTE}' (Blender's stamp note)"
         try:
-            doc, _ = json.JSONDecoder().raw_decode(text)
-        except ValueError as exc:
-            raise CameraHeaderError(f"{source} is not valid JSON after '{NOTE_MARKER}' "
-                                    f"({exc}; Blender keeps {NOTE_LIMIT} bytes of a note)") from None
+            doc, _ = load_json(text, source, raw=True)
+        except CameraHeaderError as exc:
+            raise CameraHeaderError(f"{exc} after '{NOTE_MARKER}' (Blender keeps {NOTE_LIMIT} "
+                                    f"bytes of a note)") from None
         found = parse_camera_json(json.dumps(doc), source)
         if found is not None:
             return found
@@ -294,6 +347,17 @@ class ResolvedCamera:
         return out
 
 
+def _same_image(fields: dict, src: str, width: int, height: int, where: str) -> None:
+    """Refuse a header camera whose stated image size is not the image's: its ``A`` (and
+    focal length in pixels) scale with the width, so another size's would be wrong by
+    that ratio."""
+    for k, n in (("width", width), ("height", height)):
+        if fields.get(k, n) != n:
+            raise CameraHeaderError(
+                f"{src} field {where}.{k} is {fields[k]} but the image is {width}x{height} "
+                f"(cropped or resized after rendering?): give --blur-parameter")
+
+
 def resolve(header: HeaderCamera | None, given: dict, width: int, height: int, path,
             labels: dict | None = None) -> ResolvedCamera:
     """Merge a header's camera with values given on the command line, field by field.
@@ -327,6 +391,9 @@ def resolve(header: HeaderCamera | None, given: dict, width: int, height: int, p
     if "blur_parameter" in given:
         A, sources["blur_parameter"] = float(given["blur_parameter"]), labels["blur_parameter"]
         f_px = hi.get("focal_length_px")
+        if f_px is not None and any(hi.get(k, n) != n for k, n in (("width", width),
+                                                                  ("height", height))):
+            f_px = None  # another image's focal length in pixels: not this one's
     elif mixed or hb:
         lens, missing = {}, []
         for k in LENS_FIELDS:
@@ -346,11 +413,7 @@ def resolve(header: HeaderCamera | None, given: dict, width: int, height: int, p
             raise CameraHeaderError(f"no {what}: give {opts} ({where}; render with the MPIB "
                                     f"extension enabled to record the whole camera)")
         if src and src in sources.values():  # the header's lens must be this image's
-            for k, n in (("width", width), ("height", height)):
-                if hb.get(k, n) != n:
-                    raise CameraHeaderError(
-                        f"{src} field camera.blender.{k} is {hb[k]} but the image is {width}x"
-                        f"{height} (cropped or resized after rendering?): give --blur-parameter")
+            _same_image(hb, src, width, height, "camera.blender")
         # d_f below is 1/focus_distance, the very float blender_camera gives the add-on
         cam = blender_camera(**lens, width=width, height=height, focus_distance=1.0)
         A, f_px = cam.blur_parameter, cam.focal_length_px
@@ -361,6 +424,7 @@ def resolve(header: HeaderCamera | None, given: dict, width: int, height: int, p
             raise CameraHeaderError(f"the lens ({named}) gives a blur parameter A = {A} px per "
                                     f"unit disparity; it must be finite and > 0")
     elif "blur_parameter" in hi:
+        _same_image(hi, src, width, height, "camera")
         A, sources["blur_parameter"] = hi["blur_parameter"], src
         f_px = hi.get("focal_length_px")
     else:

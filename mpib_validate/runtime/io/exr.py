@@ -41,7 +41,6 @@ from __future__ import annotations
 
 import enum
 import os
-import secrets
 from dataclasses import dataclass
 from typing import Any, Mapping
 
@@ -163,11 +162,15 @@ def _storage_name(value: Any) -> str:
 
 
 def _check_file(path: str) -> None:
-    """Raise ExrError for the cheap-to-diagnose failures, before OpenEXR."""
-    if not os.path.exists(path):
-        raise ExrError(f"cannot read EXR {path!r}: file does not exist")
-    if os.path.isdir(path):
-        raise ExrError(f"cannot read EXR {path!r}: is a directory")
+    """Raise ExrError for the cheap-to-diagnose failures, before OpenEXR: a missing
+    file, anything but a regular file (a FIFO would block the open forever), an empty
+    file, a bad magic number."""
+    from mpib_validate.runtime.io.atomic import InputError, check_input
+
+    try:
+        check_input(path, "EXR")
+    except InputError as exc:
+        raise ExrError(str(exc)) from None
     try:
         with open(path, "rb") as fh:
             magic = fh.read(4)
@@ -190,6 +193,28 @@ def image_size(path: str | os.PathLike[str]) -> tuple[int, int]:
     except Exception as exc:  # RuntimeError/ValueError/KeyError/IndexError from the binding
         raise ExrError(f"cannot read EXR {path!r}: corrupt or unreadable header ({exc})") from exc
     return int(x1) - int(x0) + 1, int(y1) - int(y0) + 1
+
+
+def header_size(path: str | os.PathLike[str]) -> tuple[int, int, int]:
+    """``(width, height, channels)`` from the header alone: the largest data window of
+    any part and the number of channels over all parts, so that what decoding would
+    allocate (at most 4 B per channel and pixel) is known before any pixel is read.
+    Raises :class:`ExrError` (message contains the path) like :func:`read_exr`."""
+    path = os.fspath(path)
+    _check_file(path)
+    try:
+        head = OpenEXR.File(path, separate_channels=True, header_only=True)
+        width = height = channels = 0
+        for part in head.parts:
+            (x0, y0), (x1, y1) = part.header["dataWindow"]
+            width = max(width, int(x1) - int(x0) + 1)
+            height = max(height, int(y1) - int(y0) + 1)
+            channels += len(part.header.get("channels", []))
+    except Exception as exc:  # RuntimeError/ValueError/KeyError/IndexError from the binding
+        raise ExrError(f"cannot read EXR {path!r}: corrupt or unreadable header ({exc})") from exc
+    if width < 1 or height < 1:
+        raise ExrError(f"cannot read EXR {path!r}: empty data window ({width}x{height})")
+    return width, height, max(channels, 1)
 
 
 def read_exr(path: str | os.PathLike[str]) -> ExrImage:
@@ -438,25 +463,23 @@ def write_exr(
             )
         header[key] = value
 
-    directory, name = os.path.split(os.path.abspath(path))
-    if os.path.isdir(path):
-        raise ExrError(f"cannot write EXR {path!r}: target is a directory")
+    from mpib_validate.runtime.io.atomic import OutputError, place, replaceable, temporary_beside
+
     try:
-        os.makedirs(directory, exist_ok=True)
+        replaceable(path, "cannot write EXR: the target")
+        tmp = temporary_beside(path, ".exr")
+    except OutputError as exc:
+        raise ExrError(str(exc)) from None
     except OSError as exc:
         raise ExrError(f"cannot write EXR {path!r}: cannot create directory ({exc})") from exc
-
-    tmp = os.path.join(directory, f".{name}.tmp-{os.getpid()}-{secrets.token_hex(4)}.exr")
     try:
-        OpenEXR.File(header, prepared).write(tmp)
+        OpenEXR.File(header, prepared).write(str(tmp))
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
-        os.replace(tmp, path)
+        place(tmp, path)
     except BaseException as exc:
         try:
             os.remove(tmp)
-        except FileNotFoundError:
-            pass
         except OSError:
             pass
         if isinstance(exc, Exception):

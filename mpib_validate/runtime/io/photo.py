@@ -32,7 +32,7 @@ import numpy as np
 
 from mpib_validate.runtime.io.atomic import atomic_path
 from mpib_validate.runtime.io.colour import linear_to_srgb, srgb_to_linear
-from mpib_validate.runtime.io.png16 import PngError, png16_bytes, png_header, read_png16
+from mpib_validate.runtime.io.png16 import PngError, png16_bytes, png_dimensions, png_header, read_png16
 
 
 class PhotoError(ValueError):
@@ -139,11 +139,17 @@ def _read_integer_pixels(path) -> tuple[np.ndarray, bytes | None]:
 
         try:
             with tifffile.TiffFile(str(path)) as tf:
-                a = tf.asarray()
+                series = tf.series[0]
+                axes = _tiff_axes(series.axes, series.shape, path)
+                a = series.asarray()
                 tag = tf.pages[0].tags.get(34675)  # InterColorProfile
                 icc = bytes(tag.value) if tag is not None else None
+        except PhotoError:
+            raise
         except Exception as exc:  # tifffile raises several types for bad files
             raise PhotoError(f"cannot read '{path}': {' '.join(str(exc).split())}") from None
+        if axes == "SYX":  # planar configuration: one plane per sample
+            a = np.moveaxis(a, 0, -1)
         return (a[..., None] if a.ndim == 2 else a), icc
     head = png_header(path) if fmt == "PNG" else None
     if head is not None and head[0] == 16 and head[1] != 0:
@@ -174,6 +180,85 @@ def _read_integer_pixels(path) -> tuple[np.ndarray, bytes | None]:
     return (a[..., None] if a.ndim == 2 else a), icc
 
 
+def _tiff_axes(axes: str, shape, path) -> str:
+    """The axes of a TIFF's first image series with the length-1 ones dropped: ``YX``
+    (grey), ``YXS`` (samples interleaved) or ``SYX`` (planar configuration); anything
+    else (several pages or images, a volume) is refused naming the file."""
+    kept = "".join(a for a, n in zip(axes, shape) if n != 1 or a in "YX")
+    if kept not in ("YX", "YXS", "SYX"):
+        raise PhotoError(f"'{path}' holds an image series of shape {tuple(shape)} (axes "
+                         f"{axes}): several pages or a volume; a photograph or map is one "
+                         f"image (save the one you mean on its own)")
+    return kept
+
+
+#: Peak bytes per pixel of reading a photograph (measured with ``read_photo`` on
+#: 4000x3000 files, fresh processes): 8- and 16-bit files 150-153 (the decoded
+#: integers, float64 colour and the transfer curve's temporaries), float TIFF 63, EXR
+#: 65; what :func:`read_photo` keeps is 24 (float64 RGB). Disparity maps: 13-18 (what
+#: :func:`read_disparity` keeps is 8).
+READ_BYTES_PER_PX = {"integer": 160, "float": 72, "map": 24}
+
+
+def header_size(path, what: str = "photograph") -> tuple[int, int]:
+    """``(width, height)`` of a JPEG, PNG, TIFF, EXR or ``.npy`` file from its header
+    alone (no pixel is decoded), so that its memory is known before it is read.
+    Raises :class:`PhotoError` naming the file when the header is unreadable."""
+    from mpib_validate.runtime.io.atomic import InputError, check_input
+
+    try:
+        p = check_input(path, what)
+    except InputError as exc:
+        raise PhotoError(str(exc)) from None
+    suffix = p.suffix.lower()
+    fmt = image_format(p)
+    try:
+        if suffix == ".npy":
+            with open(p, "rb") as fh:
+                version = np.lib.format.read_magic(fh)
+                shape, _, _ = np.lib.format._read_array_header(fh, version)
+            if len(shape) < 2:
+                raise PhotoError(f"'{path}': a {what} is a 2-D array, got shape {shape}")
+            return int(shape[1]), int(shape[0])
+        if fmt == "EXR":
+            from mpib_validate.runtime.io.exr import header_size as exr_size
+
+            w, h, _ = exr_size(p)
+            return w, h
+        if fmt == "TIFF":
+            import tifffile
+
+            with tifffile.TiffFile(str(p)) as tf:
+                series = tf.series[0]
+                _tiff_axes(series.axes, series.shape, path)
+                dims = [n for a, n in zip(series.axes, series.shape) if a in "YX"]
+            return int(dims[1]), int(dims[0])
+        if fmt == "PNG":
+            head = png_dimensions(p)
+            if head is not None:
+                return head
+        from PIL import Image
+
+        with Image.open(p) as im:  # reads the header only
+            w, h = im.size
+            if _exif_transposes(im):
+                w, h = h, w
+            return int(w), int(h)
+    except PhotoError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - Pillow, tifffile and numpy raise many types
+        raise PhotoError(f"cannot read '{path}': {' '.join(str(exc).split())[:200]}") from None
+
+
+def _exif_transposes(im) -> bool:
+    """Whether the EXIF orientation (5 to 8) swaps the width and the height, as
+    ``ImageOps.exif_transpose`` will."""
+    try:
+        return int(im.getexif().get(0x0112, 1)) in (5, 6, 7, 8)
+    except Exception:  # noqa: BLE001 - a malformed EXIF block is read as stored
+        return False
+
+
 def _bits_of(a: np.ndarray, path) -> int:
     if a.dtype == np.uint8:
         return 8
@@ -195,11 +280,15 @@ def read_photo(path, encoding: Encoding | None = None) -> Photo:
     linear coverage). Raises :class:`PhotoError` naming the file for unreadable files,
     unsupported layouts and NaN or infinite values.
     """
+    from mpib_validate.runtime.io.atomic import InputError, check_input
+
     fmt = image_format(path)
     if fmt is None:
         raise PhotoError(f"'{path}': unknown image type (use .jpg, .png, .tif or .exr)")
-    if not Path(path).is_file():
-        raise PhotoError(f"cannot read '{path}': no such file")
+    try:
+        check_input(path, "photograph")
+    except InputError as exc:
+        raise PhotoError(str(exc)) from None
     if fmt == "EXR":
         if encoding is not None and encoding.name != "linear":
             raise PhotoError(f"'{path}' is an EXR, which holds linear radiance: drop "
@@ -215,6 +304,8 @@ def read_photo(path, encoding: Encoding | None = None) -> Photo:
         return Photo(rgb, None if opaque else alpha, 32, fmt, Encoding("linear"), str(path))
     a, icc = _read_integer_pixels(path)
     bits = _bits_of(a, path)
+    if a.shape[0] < 1 or a.shape[1] < 1:
+        raise PhotoError(f"'{path}' is empty ({a.shape[1]}x{a.shape[0]} pixels)")
     C = a.shape[2]
     if C not in (1, 2, 3, 4):
         raise PhotoError(f"'{path}' has {C} channels; a photograph has 1 (grey), 3 (RGB) "
@@ -256,6 +347,9 @@ def write_photo(path, rgb: np.ndarray, alpha: np.ndarray | None, encoding: Encod
             raise PhotoError(f"'{path}': JPEG has no alpha and this image is transparent; "
                              f"write a .png")
         bits = 8
+    if not (np.isfinite(rgb).all() and (alpha is None or np.isfinite(alpha).all())):
+        raise PhotoError(f"'{path}': the image to write holds NaN or infinite values (a bug; "
+                         f"please report it with the inputs); nothing was written")
     pixels = encode_photo(rgb, alpha, encoding, bits)
     with atomic_path(path) as tmp:
         if fmt == "TIFF":
@@ -326,9 +420,12 @@ def read_scalar_map(path, what: str = "disparity map") -> ScalarMap:
     Integers are scaled to [0, 1]: ``v / 255`` (8 bit) and ``v / 65535`` (16 bit).
     Raises :class:`PhotoError` naming the file for colour images, NaN or infinite
     values and unreadable files."""
-    p = Path(path)
-    if not p.is_file():
-        raise PhotoError(f"cannot read {what} '{path}': no such file")
+    from mpib_validate.runtime.io.atomic import InputError, check_input
+
+    try:
+        p = check_input(path, what)
+    except InputError as exc:
+        raise PhotoError(str(exc)) from None
     suffix = p.suffix.lower()
     if suffix == ".npy":
         try:
@@ -360,6 +457,8 @@ def read_scalar_map(path, what: str = "disparity map") -> ScalarMap:
     else:
         raise PhotoError(f"'{path}': unknown {what} type (use .png, .jpg, .tif, .exr or .npy)")
     bits = 32 if suffix in (".exr",) else _bits_of(a, path)
+    if a.shape[0] < 1 or a.shape[1] < 1:
+        raise PhotoError(f"'{path}': the {what} is empty ({a.shape[1]}x{a.shape[0]} pixels)")
     v = _one_channel(a, path, what).astype(np.float64)
     if bits == 32:
         bad = ~np.isfinite(v)

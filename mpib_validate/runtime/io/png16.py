@@ -24,7 +24,21 @@ def png_header(path):
     return head[24], head[25], head[28]
 
 
+def png_dimensions(path) -> tuple[int, int] | None:
+    """``(width, height)`` from a PNG's IHDR, or None if not a PNG."""
+    with open(path, "rb") as f:
+        head = f.read(24)
+    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        return None
+    return struct.unpack(">II", head[16:24])
+
+
 _PNG_CHANNELS = {0: 1, 2: 3, 4: 2, 6: 4}
+#: The most pixels :func:`read_png16` decodes (Pillow's own decompression-bomb limit for
+#: the 8-bit files it reads, ``2 * Image.MAX_IMAGE_PIXELS``): about 150 B per pixel
+#: while decoding, so a file of a few kB cannot ask for tens of GB. Callers check a
+#: memory limit from :func:`png_dimensions` before.
+MAX_PIXELS = 2 * 89_478_485
 
 
 def _unfilter(rows: np.ndarray, W: int, bpp: int, path) -> np.ndarray:
@@ -83,13 +97,19 @@ def read_png16(path) -> tuple[np.ndarray, bytes | None]:
     if ihdr is None:
         raise PngError(f"'{path}' is not a readable PNG (no IHDR)")
     W, H, depth, ctype, _, _, interlace = ihdr
+    if W < 1 or H < 1 or W * H > MAX_PIXELS:
+        raise PngError(f"'{path}': a {W}x{H} PNG ({W * H:,} pixels) is refused; at most "
+                       f"{MAX_PIXELS:,} pixels are decoded")
     if depth != 16 or ctype not in _PNG_CHANNELS or interlace:
         raise PngError(f"'{path}': only non-interlaced 16-bit PNGs are decoded here "
                          f"(bit depth {depth}, colour type {ctype}, interlace {interlace})")
     C = _PNG_CHANNELS[ctype]
     bpp, stride = 2 * C, 2 * C * W
     try:
-        raw = np.frombuffer(zlib.decompress(b"".join(idat)), np.uint8)
+        # no more than the image needs: compressed data that inflates past it (a
+        # "zip bomb") is cut there, not held
+        raw = np.frombuffer(zlib.decompressobj().decompress(b"".join(idat),
+                                                            H * (stride + 1)), np.uint8)
     except zlib.error as exc:
         raise PngError(f"'{path}': corrupt PNG data ({exc})") from None
     if raw.size < H * (stride + 1):
