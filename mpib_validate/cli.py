@@ -177,7 +177,9 @@ def cmd_render(args) -> int:
     from mpib_validate.cards.scene import load_scene
     from mpib_validate.cards.trace import render
 
-    scene = _apply_camera_overrides(load_scene(args.scene), args)
+    scene = _apply_camera_overrides(load_scene(args.scene,
+                                               allow_outside=args.allow_outside_textures,
+                                               memory_limit=_limit(args)), args)
     check_outputs(_outputs(args.output, not args.no_preview), scene.sources)
     budget.check(_render_estimate(scene, args), _limit(args))
     if args.engine == "cycles":
@@ -231,8 +233,10 @@ def cmd_bench(args) -> int:
 def _read_mask(path: str, shape):
     import numpy as np
 
+    from mpib_validate.runtime.io.atomic import check_input
     from mpib_validate.runtime.io.exr import read_exr
 
+    check_input(path, "mask")
     if path.lower().endswith(".exr"):
         img = read_exr(path)
         name = next((n for n in ("Y", "A", "R", "mask.Y") if n in img.channels),
@@ -252,9 +256,23 @@ def _read_mask(path: str, shape):
 
 
 def cmd_compare(args) -> int:
-    from mpib_validate.metrics import all_metrics
+    from mpib_validate.runtime import budget
+    from mpib_validate.runtime.io.exr import header_size
+    from mpib_validate.runtime.io.photo import header_size as map_size
+    from mpib_validate.metrics import COMPARE_BYTES_PER_PX, all_metrics
     from mpib_validate.runtime.refocus import read_colour
 
+    parts, sizes = {}, []
+    for label, path in (("reference", args.reference), ("test", args.test)):
+        w, h, nch = header_size(path)
+        parts[f"decoding the {label} ({w}x{h}, {nch} channels)"] = 4 * nch * w * h
+        sizes.append((w, h))
+    if args.mask:
+        mw, mh = map_size(args.mask, "mask")
+        parts[f"decoding the mask ({mw}x{mh})"] = 8 * mw * mh
+    w, h = max(sizes, key=lambda s: s[0] * s[1])
+    budget.check(budget.Estimate(f"comparing {w}x{h} images", {
+        **parts, "metrics": COMPARE_BYTES_PER_PX * w * h}), _limit(args))
     a = read_colour(args.reference, all_in_focus=False)
     b = read_colour(args.test, all_in_focus=False)
     if a.shape != b.shape:
@@ -469,7 +487,11 @@ def _plan_and_refocus(args, request):
 
     try:
         cache = None if args.mpi_cache is None else DiskCache(args.mpi_cache)
-        result = refocus(request, progress, cache)
+        from mpib_validate.runtime.io.atomic import apart
+
+        # the cache is kept as it is built: not an output of the run, written at once
+        with apart():
+            result = refocus(request, progress, cache)
         if args.mpi_cache is not None:
             cached = result.info["mpi_cache"]
             if cached.get("notice"):
@@ -574,6 +596,8 @@ def _refocus_photo(args) -> int:
     elif args.focus_depth is not None:
         raise CliError("--focus-depth is a distance, which a normalised disparity map has no "
                        "scale for: give --disp-focus (in [0, 1]) or --focus-pixel X,Y")
+    _check_reading(args, [(args.input, "photo")] + [(p, kind) for p, kind in (
+        (args.disparity, "map"), (args.depth, "exr")) if p])
     photo = read_photo(args.input, _photo_encoding(args))
     H, W = photo.rgb.shape[:2]
     if args.disparity is not None:
@@ -604,7 +628,10 @@ def _refocus_photo(args) -> int:
             focus = focus_from_pixel(passes, x, y)
         if focus is None:
             raise CliError("no focus: give --disp-focus (in [0, 1]) or --focus-pixel X,Y")
-        A, d_f = from_paper(args.K, focus)
+        try:
+            A, d_f = from_paper(args.K, focus)
+        except ValueError as exc:  # names the option
+            raise CliError(str(exc)) from None
         sources = {"blur_parameter": "--K", "focus_disparity": "--focus-pixel {},{}".format(
             *args.focus_pixel) if args.focus_pixel else (
             "--disp-focus" if args.disp_focus is not None else "--focus-disparity")}
@@ -650,6 +677,38 @@ def _refocus_photo(args) -> int:
                    f"{photo.encoding.describe()}, disparity refinement {refine}")
 
 
+#: Peak bytes per pixel of reading an EXR's passes (``refocus.load_passes`` or
+#: ``load_layered_passes``), per channel the file holds and fixed: measured 60 B/px for
+#: colour and depth (5 channels), 276 and 480 B/px for layered renders of 2 and 5 groups
+#: (14 and 29 channels), 2000x1500, fresh processes.
+EXR_READ_BYTES_PER_CHANNEL = 14
+EXR_READ_BYTES = 86
+
+
+def _check_reading(args, inputs) -> None:
+    """Refuse, from the files' headers and before any pixel is decoded, a refocus whose
+    inputs alone would take more memory than --max-memory-gb: decoding each input
+    (``inputs``: ``(path, kind)``, kind ``photo``, ``map`` or ``exr``) and the least any
+    refocus of that size needs (``budget.reading_estimate``)."""
+    from mpib_validate.runtime import budget
+    from mpib_validate.runtime.io.exr import header_size as exr_size
+    from mpib_validate.runtime.io.photo import READ_BYTES_PER_PX, header_size, image_format
+
+    parts, size = {}, None
+    for path, kind in inputs:
+        if kind == "exr" or (kind == "photo" and image_format(path) == "EXR"):
+            w, h, nch = exr_size(path)
+            per = (EXR_READ_BYTES + EXR_READ_BYTES_PER_CHANNEL * nch if kind == "exr"
+                   else READ_BYTES_PER_PX["float"])
+        else:
+            w, h = header_size(path, "disparity map" if kind == "map" else "photograph")
+            per = READ_BYTES_PER_PX["integer" if kind == "photo" else "map"]
+        parts[f"reading '{Path(path).name}' ({w}x{h})"] = per * w * h
+        size = size or (w, h)
+    budget.check(budget.reading_estimate(f"refocusing {size[0]}x{size[1]}", parts,
+                                         size[0] * size[1]), _limit(args))
+
+
 def _set_pixel_model(args, passes) -> None:
     """``--pixel-model`` over what the input says (``refocus.pixel_model_of``)."""
     if getattr(args, "pixel_model", "auto") != "auto":
@@ -675,6 +734,8 @@ def cmd_refocus(args) -> int:
     if args.layered and (args.depth or args.background or args.view_layer):
         raise CliError("--layered takes colour and depth from the input's view layers: "
                        "drop --depth, --background and --view-layer")
+    _check_reading(args, [(args.input, "exr")] + [(p, "exr") for p in (args.depth,
+                                                                        args.background) if p])
     # layered input: with --layered, or view layers named mpib_group_<k> (automatic)
     layered = not (args.depth or args.view_layer)
     passes = load_layered_passes(args.input, True if args.layered else None,
@@ -822,6 +883,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--focus-disparity", type=_FINITE, default=None, help="override d_f (1/scene-unit)")
     r.add_argument("--blur-parameter", type=_FINITE, default=None, help="override A (px per unit disparity)")
     r.add_argument("--no-preview", action="store_true", help="do not write the PNG preview")
+    r.add_argument("--allow-outside-textures", action="store_true",
+                   help="read texture paths that lead outside the scene folder ('..', "
+                        "absolute paths, links pointing out); refused by default, see "
+                        "docs/scene-format.md")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     _add_memory_option(r)
     r.set_defaults(func=cmd_render)
@@ -886,6 +951,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="HDR data range (default: the reference's largest value, at least 1)")
     c.add_argument("--no-flip", action="store_true", help="skip FLIP")
     c.add_argument("--json", action="store_true", help="print JSON")
+    _add_memory_option(c)
     c.set_defaults(func=cmd_compare)
 
     f = sub.add_parser("refocus", help="refocus a rendered picture (colour + depth EXR) or a "
@@ -1033,32 +1099,53 @@ def _join_option_values(argv: list[str]) -> list[str]:
     return out
 
 
+def _named(exc: BaseException) -> bool:
+    """Whether ``exc`` is a refusal whose message names the file, field or option: the
+    project's own error classes (every one a ``ValueError`` defined in this package),
+    :class:`CliError`, and file-system errors (``OSError`` names the path)."""
+    kind = type(exc)
+    return isinstance(exc, (CliError, OSError)) or (
+        isinstance(exc, ValueError) and kind.__module__.startswith("mpib_validate."))
+
+
+#: Commands whose outputs appear together or not at all (``io.atomic.together``);
+#: ``dataset``, ``bench`` and ``demo`` write many results, each atomically, and keep
+#: the finished ones when a later one fails.
+_TOGETHER = ("generate", "render", "refocus", "compare")
+
+
 def main(argv: list[str] | None = None) -> int:
-    from mpib_validate.runtime.io.atomic import OutputError
-    from mpib_validate.runtime.io.exr import ExrError
+    import contextlib
+
+    from mpib_validate.runtime.io.atomic import together
     from mpib_validate.executor import Terminated, raise_on_sigterm, restore_sigterm
-    from mpib_validate.runtime.layers.passes import PassError
-    from mpib_validate.cards.scene import SceneError
 
     argv = _join_option_values(list(sys.argv[1:] if argv is None else argv))
     args = build_parser().parse_args(argv)
     previous = raise_on_sigterm()
     try:
-        return args.func(args)
-    except (CliError, SceneError, ExrError, OutputError, PassError, ValueError, OSError) as exc:
-        text = " ".join(str(exc).split()) or type(exc).__name__
-        print(f"mpib {args.command}: error: {text}", file=sys.stderr)
-        return 2
+        with together() if args.command in _TOGETHER else contextlib.nullcontext():
+            return args.func(args)
     except MemoryError:
         print(f"mpib {args.command}: error: out of memory; give smaller inputs or fewer "
               f"samples (the estimate before the work was under --max-memory-gb)", file=sys.stderr)
         return 2
-    except Terminated:
-        print(f"mpib {args.command}: terminated", file=sys.stderr)
-        return 143
-    except KeyboardInterrupt:
-        print(f"mpib {args.command}: interrupted", file=sys.stderr)
-        return 130
+    except (Terminated, KeyboardInterrupt) as exc:
+        what = "terminated" if isinstance(exc, Terminated) else "interrupted"
+        note = "; nothing was written" if args.command in _TOGETHER else ""
+        print(f"mpib {args.command}: {what}{note}", file=sys.stderr)
+        return 143 if isinstance(exc, Terminated) else 130
+    except Exception as exc:  # noqa: BLE001 - every error is one line, never a traceback
+        text = " ".join(str(exc).split()) or type(exc).__name__
+        if _named(exc):
+            print(f"mpib {args.command}: error: {text}", file=sys.stderr)
+            return 2
+        if os.environ.get("MPIB_TRACEBACK"):
+            raise
+        print(f"mpib {args.command}: internal error: {type(exc).__name__}: {text[:300]} (a "
+              f"bug: please report it with the command line; MPIB_TRACEBACK=1 shows where)",
+              file=sys.stderr)
+        return 70
     finally:
         restore_sigterm(previous)
 

@@ -50,6 +50,9 @@ def psnr(ref, test, mask=None, peak: float = 1.0) -> float:
 #: scikit-image sizes it: 2 * int(3.5 * 1.5 + 0.5) + 1); SSIM is undefined (NaN) on
 #: smaller images.
 SSIM_WINDOW = 11
+#: Peak bytes per pixel of ``mpib compare`` above its inputs (all metrics, FLIP included,
+#: with or without a mask): measured 295 to 341 B/px at 1500x1000 in fresh processes.
+COMPARE_BYTES_PER_PX = 360
 
 
 def ssim(ref, test, mask=None, peak: float = 1.0) -> float:

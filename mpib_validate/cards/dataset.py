@@ -25,6 +25,8 @@ import socket
 import time
 from pathlib import Path
 
+from mpib_validate.runtime.io.atomic import OutputError
+
 FAMILIES = ("constant", "varying", "mixed")
 
 
@@ -150,11 +152,11 @@ def build_dataset(out, count: int, family: str = "mixed", size=(256, 256), spp: 
         raise ValueError("count must be >= 1 and start >= 0")
     out = Path(out)
     if out.exists() and not out.is_dir():
-        raise ValueError(f"dataset folder '{out}' is a file, not a folder")
+        raise OutputError(f"dataset folder '{out}' is a file, not a folder")
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise ValueError(f"cannot make the dataset folder '{out}': {exc.strerror}") from None
+        raise OutputError(f"cannot make the dataset folder '{out}': {exc.strerror}") from None
     for stale in out.glob(TMP_PREFIX + "*"):  # left by an interrupted run, not a live one
         if stale.is_dir() and _owner_gone(stale):
             _discard(stale)

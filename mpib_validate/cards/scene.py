@@ -27,7 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mpib_validate.runtime.io.atomic import write_text
+from mpib_validate.runtime.io.atomic import InputError, check_input, write_text
+from mpib_validate.runtime.io.camera_header import MAX_SIDE, shown, load_json
 from mpib_validate.runtime.camera import Aperture, ApertureError, Camera
 
 FORMAT_NAME = "mpib-scene"
@@ -194,11 +195,14 @@ class Scene:
 
 def _finite_number(value, where: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
-        raise SceneError(f"{where}: must be a number, got {value!r}")
-    value = float(value)
-    if not math.isfinite(value):
-        raise SceneError(f"{where}: must be finite, got {value}")
-    return value
+        raise SceneError(f"{where}: must be a number, got {shown(value)}")
+    try:
+        number = float(value)
+    except OverflowError:  # an integer beyond the float range
+        number = math.inf
+    if not math.isfinite(number):
+        raise SceneError(f"{where}: must be finite, got {shown(value)}")
+    return number
 
 
 def validate_camera(camera: Camera, source: str = "scene") -> None:
@@ -342,7 +346,10 @@ def _field(obj: dict, key: str, where: str, default=KeyError):
 def _int_pair(value, where: str) -> tuple[int, int]:
     if (not isinstance(value, (list, tuple)) or len(value) != 2
             or not all(isinstance(v, int) and not isinstance(v, bool) for v in value)):
-        raise SceneError(f"{where}: must be a pair of integers [x, y], got {value!r}")
+        raise SceneError(f"{where}: must be a pair of integers [x, y], got {shown(value)}")
+    if not all(abs(v) <= MAX_SIDE for v in value):
+        raise SceneError(f"{where}: must be a pair of integers of at most {MAX_SIDE} in size, "
+                         f"got {shown(value)}")
     return int(value[0]), int(value[1])
 
 
@@ -369,31 +376,83 @@ def _plane_from_json(entry: dict, where: str) -> Plane:
     raise SceneError(f"{where}: needs a 'disparity' (fronto-parallel) or a 'plane' {{a, b, c}}")
 
 
-def load_scene(path: str | os.PathLike) -> Scene:
+#: A ``scene.json`` larger than this is refused before it is read (a scene of a thousand
+#: cards is about 300 kB).
+MAX_SCENE_JSON_BYTES = 16 << 20
+#: Bytes per texel of reading the textures: each kept as float32 RGBA and, premultiplied,
+#: by the tracer (``budget.TEXEL_BYTES``), plus one texture's decoding at a time (its
+#: channels, at most 4 B each, and the float32 RGBA assembled from them).
+READ_BYTES_PER_TEXEL_CHANNEL = 4
+READ_BYTES_PER_TEXEL = 16
+
+
+def _texture_path(json_path: Path, tex_rel: str, where: str, allow_outside: bool) -> Path:
+    """The texture file a card names, relative to the scene folder. A path that leads
+    outside the folder (``..``, an absolute path, a symbolic link pointing out) is
+    refused unless ``allow_outside``: a scene folder from elsewhere must not read other
+    files of this machine into a render (docs/scene-format.md, "Texture paths")."""
+    tex_path = json_path.parent / tex_rel
+    if not allow_outside:
+        root = json_path.parent.resolve()
+        try:
+            inside = tex_path.resolve().is_relative_to(root)
+        except (OSError, RuntimeError):  # a symbolic link loop
+            inside = False
+        if not inside:
+            raise SceneError(f"{where} field 'texture': '{tex_rel}' lies outside the scene "
+                             f"folder '{root}'; textures are read only from inside it (give "
+                             f"--allow-outside-textures to read it anyway)")
+    try:
+        check_input(tex_path, "texture")
+    except InputError as exc:
+        what = str(exc).rsplit("': ", 1)[-1].removeprefix("file ").removeprefix("it ")
+        raise SceneError(f"{where} field 'texture': file '{tex_path}' {what}") from None
+    return tex_path
+
+
+def load_scene(path: str | os.PathLike, *, allow_outside: bool = False,
+               memory_limit: int | None = None) -> Scene:
     """Read a scene directory (or its ``scene.json``) and validate it.
 
     Raises :class:`SceneError` naming the file, the card and the field on any problem:
     missing or unreadable files, NaN, ``c <= 0``, non-positive depth inside a card,
     a texture whose size disagrees with the declared ``size``, and so on.
+
+    ``allow_outside``: read texture paths that lead outside the scene folder (refused
+    by default, see :func:`_texture_path`). ``memory_limit``: bytes; the textures'
+    sizes are read from their headers and a scene whose textures would need more
+    (:data:`READ_BYTES_PER_TEXEL` and per channel) is refused before any is decoded
+    (:class:`~mpib_validate.runtime.budget.BudgetError` naming ``--max-memory-gb``).
     """
-    from mpib_validate.runtime.io.exr import ExrError, read_exr, rgba_from
+    from mpib_validate.runtime.io.exr import ExrError, header_size, read_exr, rgba_from
 
     path = Path(path)
     json_path = path / "scene.json" if path.is_dir() else path
     if not json_path.exists():
         raise SceneError(f"{json_path}: scene file does not exist")
     try:
-        doc = json.loads(json_path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        check_input(json_path, "scene file")
+    except InputError as exc:
+        raise SceneError(str(exc)) from None
+    size = json_path.stat().st_size
+    if size > MAX_SCENE_JSON_BYTES:
+        raise SceneError(f"{json_path}: scene file is {size:,} bytes, more than the "
+                         f"{MAX_SCENE_JSON_BYTES:,} a scene.json may have")
+    try:
+        text = json_path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
         raise SceneError(f"{json_path}: cannot parse scene JSON: {exc}") from None
     src = str(json_path)
+    doc = load_json(text, f"{src}: cannot parse scene JSON: the file", SceneError)
     if not isinstance(doc, dict):
         raise SceneError(f"{src}: top level must be a JSON object")
     _refuse_unknown(doc, TOP_FIELDS, src)
     if doc.get("format", FORMAT_NAME) != FORMAT_NAME:
-        raise SceneError(f"{src}: field 'format' must be '{FORMAT_NAME}', got {doc.get('format')!r}")
+        raise SceneError(f"{src}: field 'format' must be '{FORMAT_NAME}', got "
+                         f"{shown(doc.get('format'))}")
     if doc.get("version", FORMAT_VERSION) != FORMAT_VERSION:
-        raise SceneError(f"{src}: field 'version': unsupported version {doc.get('version')!r}")
+        raise SceneError(f"{src}: field 'version': unsupported version "
+                         f"{shown(doc.get('version'))}")
 
     cam = _field(doc, "camera", src)
     if not isinstance(cam, dict):
@@ -403,8 +462,12 @@ def load_scene(path: str | os.PathLike) -> Scene:
         _field(cam, key, f"{src}: camera")
     for key in ("width", "height"):  # Camera derives its default focal length from them
         v = cam[key]
-        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-            raise SceneError(f"{src}: camera field '{key}': must be a positive integer, got {v!r}")
+        if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= MAX_SIDE:
+            raise SceneError(f"{src}: camera field '{key}': must be a positive integer of at "
+                             f"most {MAX_SIDE}, got {shown(v)}")
+    for key in ("blur_parameter", "focus_disparity", "focal_length_px"):
+        if key in cam:
+            _finite_number(cam[key], f"{src}: camera field '{key}'")
     cam = dict(cam)
     if "aperture" in cam:
         ap = cam["aperture"]
@@ -415,6 +478,8 @@ def load_scene(path: str | os.PathLike) -> Scene:
             cam["aperture"] = Aperture(**ap)
         except ApertureError as exc:
             raise SceneError(f"{src}: camera aperture: {exc}") from None
+        except (TypeError, OverflowError) as exc:  # a field of the wrong type
+            raise SceneError(f"{src}: camera aperture: {' '.join(str(exc).split())[:200]}") from None
     camera = Camera(**cam)
     validate_camera(camera, src)
 
@@ -423,9 +488,8 @@ def load_scene(path: str | os.PathLike) -> Scene:
         raise SceneError(f"{src}: field 'cards' must be a list")
     metadata = doc.get("metadata", {})
     if not isinstance(metadata, dict):
-        raise SceneError(f"{src}: field 'metadata' must be an object, got {metadata!r}")
-    cards = []
-    sources = [json_path]
+        raise SceneError(f"{src}: field 'metadata' must be an object, got {shown(metadata)}")
+    entries = []
     for i, entry in enumerate(cards_json):
         if not isinstance(entry, dict):
             raise SceneError(f"{src}: card #{i} must be an object")
@@ -435,11 +499,27 @@ def load_scene(path: str | os.PathLike) -> Scene:
         tex_rel = _field(entry, "texture", where)
         if not isinstance(tex_rel, str) or not tex_rel.strip():
             raise SceneError(f"{where} field 'texture': must be the path of an EXR file "
-                             f"(relative to scene.json), got {tex_rel!r}")
-        tex_path = (json_path.parent / tex_rel)
-        if not tex_path.is_file():
-            what = "is not a file" if tex_path.exists() else "does not exist"
-            raise SceneError(f"{where} field 'texture': file '{tex_path}' {what}")
+                             f"(relative to scene.json), got {shown(tex_rel)}")
+        entries.append((entry, name, where, _texture_path(json_path, tex_rel, where,
+                                                          allow_outside)))
+    if memory_limit is not None:  # sizes from the headers, before decoding any texture
+        from mpib_validate.runtime import budget
+
+        texels, decode = 0, 0
+        for _, _, where, tex_path in entries:
+            try:
+                w, h, nch = header_size(tex_path)
+            except ExrError as exc:
+                raise SceneError(f"{where} field 'texture': {exc}") from None
+            texels += w * h
+            decode = max(decode, (READ_BYTES_PER_TEXEL_CHANNEL * nch + READ_BYTES_PER_TEXEL)
+                         * w * h)
+        budget.check(budget.Estimate(f"reading the textures of {src}",
+                                     {"textures": budget.TEXEL_BYTES * texels,
+                                      "decoding one texture": decode}), memory_limit)
+    cards = []
+    sources = [json_path]
+    for entry, name, where, tex_path in entries:
         sources.append(tex_path)
         try:
             rgba = rgba_from(read_exr(tex_path)).astype(np.float32, copy=False)
