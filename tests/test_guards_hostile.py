@@ -364,6 +364,37 @@ def test_a_failed_exr_after_the_photo_leaves_nothing(tmp_path):
     assert _files(tmp_path) == before and sorted(os.listdir(tmp_path)) == ["d.png", "p.png"]
 
 
+@pytest.mark.parametrize("limit", [0, 111, 500, 1000])
+def test_an_exr_cut_short_by_a_full_disk_is_an_error(tmp_path, limit):
+    """OpenEXR returned from a write whose buffered bytes never reached the disk (found
+    by tests/test_cli_fuzz.py under a file-size limit): exit 0 with an empty or truncated
+    EXR (a small image, whose file is one buffer). The file is now checked chunk by
+    chunk against its offset table before it is placed."""
+    rng = np.random.default_rng(1)
+    colour = np.ones((2, 3, 4), np.float32)
+    colour[..., :3] = rng.uniform(0, 1, (2, 3, 3))
+    src = _passes(tmp_path / "in.exr", colour)
+    before = _files(tmp_path)
+    rc, out, err = _mpib("refocus", src, "-o", tmp_path / "o.exr", *LENS, "--no-preview",
+                         preexec=_file_size_limit(limit))
+    line = one_line_error(rc, err)
+    assert "o.exr" in line
+    assert _files(tmp_path) == before and sorted(os.listdir(tmp_path)) == ["in.exr"]
+
+
+def test_a_truncated_exr_is_found_before_it_is_placed(tmp_path):
+    from mpib_validate.runtime.io.exr import ExrError, _check_complete
+
+    rng = np.random.default_rng(2)
+    write_exr(tmp_path / "a.exr", {"R": rng.uniform(0, 1, (40, 30)).astype(np.float32)})
+    _check_complete(str(tmp_path / "a.exr"))
+    data = (tmp_path / "a.exr").read_bytes()
+    for cut in (0, 7, len(data) // 3, len(data) - 1):
+        (tmp_path / "b.exr").write_bytes(data[:cut])
+        with pytest.raises(ExrError, match="incomplete"):
+            _check_complete(str(tmp_path / "b.exr"))
+
+
 def test_outputs_written_together_are_all_or_nothing(tmp_path):
     """Inside `together` nothing appears until the block ends; an error (here a target
     that became a FIFO when the files were renamed into place) undoes every rename:

@@ -404,6 +404,71 @@ def _prepare_channels(
     return out
 
 
+#: Scan lines per chunk of each compression (OpenEXR file layout), by its enum value.
+_LINES_PER_CHUNK = {0: 1, 1: 1, 2: 1, 3: 16, 4: 32, 5: 16, 6: 32, 7: 32, 8: 32, 9: 256}
+
+
+def _check_complete(path: str) -> None:
+    """Raise :class:`ExrError` unless the single-part scanline file at ``path`` holds
+    every chunk its header and offset table promise, ending exactly at the end of the
+    file. OpenEXR can return from a write whose last buffered bytes were never written
+    (a full disk: measured under a file-size limit, an empty or truncated file and no
+    error), so what it wrote is checked before it is placed."""
+    import mmap
+
+    where = f"cannot write EXR {path!r}: the written file is incomplete (a full disk?)"
+    with open(path, "rb") as fh:
+        size = os.fstat(fh.fileno()).st_size
+        if size < 8:
+            raise ExrError(where)
+        with mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as data:
+            if data[:4] != _MAGIC:
+                raise ExrError(where)
+            _check_chunks(data, size, where)
+
+
+def _check_chunks(data, size: int, where: str) -> None:
+    """The walk of :func:`_check_complete` over the file's bytes ``data``."""
+    import struct
+
+    def index(byte: bytes, start: int) -> int:
+        i = data.find(byte, start)
+        if i < 0:
+            raise ValueError("no end")
+        return i
+
+    pos = 8
+    window = compression = None
+    try:
+        while data[pos] != 0:
+            name_end = index(b"\0", pos)
+            type_end = index(b"\0", name_end + 1)
+            (n,) = struct.unpack_from("<i", data, type_end + 1)
+            value = type_end + 5
+            name = data[pos:name_end]
+            if name == b"dataWindow":
+                window = struct.unpack_from("<4i", data, value)
+            elif name == b"compression":
+                compression = data[value]
+            pos = value + n
+        pos += 1
+        if window is None or compression not in _LINES_PER_CHUNK:
+            return  # not a layout this check knows (write_exr writes none such)
+        lines = window[3] - window[1] + 1
+        chunks = -(-lines // _LINES_PER_CHUNK[compression])
+        offsets = struct.unpack_from(f"<{chunks}Q", data, pos)
+        end = pos + 8 * chunks
+        for off in offsets:
+            if off < end:
+                raise ExrError(where)
+            _, n = struct.unpack_from("<ii", data, off)
+            end = off + 8 + n
+        if end != size:
+            raise ExrError(where)
+    except (IndexError, ValueError, struct.error):
+        raise ExrError(where) from None
+
+
 def write_exr(
     path: str | os.PathLike[str],
     channels: Mapping[str, np.ndarray],
@@ -476,6 +541,7 @@ def write_exr(
         OpenEXR.File(header, prepared).write(str(tmp))
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
+        _check_complete(str(tmp))
         place(tmp, path)
     except BaseException as exc:
         try:
