@@ -11,20 +11,25 @@ the default run well under a minute.
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import stat
+import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 from clirun import run
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, event, example, given, settings
 from hypothesis import strategies as st
 
 from mpib_validate.runtime.io.exr import ExrError, read_exr, write_exr
 from mpib_validate.cards.generate import GeneratorSettings, generate
 from mpib_validate.cards.scene import save_scene
 
-FUZZ = settings(max_examples=30, deadline=None, database=None,
+# MPIB_FUZZ_EXAMPLES raises the counts for a deeper run (the default keeps the suite fast)
+EXAMPLES = int(os.environ.get("MPIB_FUZZ_EXAMPLES", "30"))
+FUZZ = settings(max_examples=EXAMPLES, deadline=None, database=None,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 # a limit that lets every small job through and refuses the large ones the strategies
 # can ask for (a 1e9 px wide camera, a billion samples, a huge blur)
@@ -352,5 +357,282 @@ def test_generate_never_crashes_or_corrupts(case):
             from mpib_validate.cards.scene import load_scene
 
             load_scene(out)
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+# -- hostile files: special files, hostile headers, NaN side inputs, interrupted writes --
+#
+# Each case is one `mpib refocus` (or `compare`) on a small picture with one hostile
+# element drawn from HOSTILE. Besides the property above: no special file (FIFO,
+# device) is replaced, nothing hangs (a SIGALRM after HANG_S seconds fails the case),
+# a run cut short by a full disk (a file-size limit at a drawn byte count) or a SIGTERM
+# (after a drawn delay) leaves no file at all, and an image-space A taken from a header
+# belongs to an image of the input's size.
+
+HOSTILE = ["fifo-input", "fifo-depth", "fifo-background", "fifo-mask", "chardev-input",
+           "fifo-output", "fifo-preview", "chardev-output", "fifo-exr",
+           "layered-nan", "layered-world-nan", "background-nan",
+           "header-deep", "header-note-deep", "header-huge-number", "header-other-size",
+           "full-disk", "sigterm", "cache-damaged", "none"]
+HANG_S = 20
+CHARDEV = os.geteuid() == 0  # only root may make a device node (1, 3 as /dev/null)
+
+
+@st.composite
+def hostile_cases(draw):
+    kind = draw(st.sampled_from(HOSTILE))
+    if kind.startswith("chardev") and not CHARDEV:
+        kind = kind.replace("chardev", "fifo")
+    return dict(kind=kind, h=draw(st.integers(2, 10)), w=draw(st.integers(2, 12)),
+                seed=draw(st.integers(0, 2 ** 16)), value=draw(st.sampled_from(
+                    [np.nan, np.inf, -np.inf])), group=draw(st.integers(0, 1)),
+                limit=draw(st.integers(0, 6000)), delay=draw(st.floats(0.0, 0.03)),
+                preview=draw(st.booleans()), photo=draw(st.booleans()),
+                damage=draw(st.sampled_from(["truncate", "flip", "json", "nan"])))
+
+
+def _special(path: Path, kind: str) -> None:
+    if kind.startswith("chardev"):
+        os.mknod(path, 0o666 | stat.S_IFCHR, os.makedev(1, 3))
+    else:
+        os.mkfifo(path)
+
+
+def _kinds(folder: Path) -> dict:
+    """Every special file (not regular, not a folder) and its type."""
+    return {p.relative_to(folder): stat.S_IFMT(os.lstat(p).st_mode)
+            for p in folder.rglob("*") if not p.is_symlink()
+            and not stat.S_ISREG(os.lstat(p).st_mode) and not p.is_dir()}
+
+
+def _write_hostile_inputs(folder: Path, case) -> tuple[list, list]:
+    """The input files of ``case`` and the command line; returns ``(args, outputs)``."""
+    rng = np.random.default_rng(case["seed"])
+    h, w, kind = case["h"], case["w"], case["kind"]
+    rgba = np.ones((h, w, 4), np.float32)
+    rgba[..., :3] = rng.uniform(0.05, 1.0, (h, w, 3))
+    depth = np.full((h, w), 4.0, np.float32)
+    depth[: h // 2, : w // 2] = 1.5
+    attributes = {}
+    header = {"deep": '{"camera": ' + "[" * 5000 + "]" * 5000 + "}",
+              "huge": '{"camera": {"blur_parameter": 1%s, "focus_disparity": 0.4}}' % ("0" * 400),
+              "other": json.dumps({"camera": {"width": w * 40, "height": h * 40,
+                                              "blur_parameter": 150.0, "focus_disparity": 0.4}})}
+    if kind == "header-deep":
+        attributes["mpib"] = header["deep"]
+    elif kind == "header-note-deep":
+        attributes["Note"] = "mpib:" + header["deep"]
+    elif kind == "header-huge-number":
+        attributes["mpib"] = header["huge"]
+    elif kind == "header-other-size":
+        attributes["mpib"] = header["other"]
+    if kind.startswith("layered"):
+        ch = {}
+        for k, z in enumerate((8.0, 2.0)):
+            layer = rgba.copy()
+            if k == 1:
+                layer[h // 2:] = 0
+            if kind == "layered-nan" and case["group"] == k:
+                layer[rng.integers(h), rng.integers(w), rng.integers(3)] = case["value"]
+            ch.update({f"mpib_group_{k}.Combined.{c}": layer[..., i] for i, c in enumerate("RGBA")})
+            ch[f"mpib_group_{k}.Depth.Z"] = np.full((h, w), z, np.float32)
+        if kind == "layered-world-nan":
+            env = np.full((h, w), 0.1, np.float32)
+            env.flat[rng.integers(env.size)] = case["value"]
+            ch.update({f"mpib_group_0.Environment.{c}": env for c in "RGB"})
+        write_exr(folder / "in.exr", {k: np.ascontiguousarray(v) for k, v in ch.items()},
+                  attributes=attributes)
+    else:
+        write_exr(folder / "in.exr", {**{c: np.ascontiguousarray(rgba[..., i])
+                                         for i, c in enumerate("RGBA")}, "Depth.Z": depth},
+                  attributes=attributes)
+    lens = [] if kind.startswith("header") else ["--blur-parameter", "6", "--focus-depth", "2"]
+    out = folder / "out.exr"
+    args = ["refocus", folder / "in.exr", "-o", out, *lens, "-q"]
+    if kind == "background-nan":
+        bg = rgba.copy()
+        bg[rng.integers(h), rng.integers(w), rng.integers(3)] = case["value"]
+        write_exr(folder / "bg.exr", {**{c: np.ascontiguousarray(bg[..., i])
+                                         for i, c in enumerate("RGBA")},
+                                      "Depth.Z": np.full((h, w), 4.0, np.float32)})
+        args += ["--background", folder / "bg.exr"]
+    if kind in ("fifo-input", "chardev-input"):
+        (folder / "in.exr").unlink()
+        _special(folder / "in.exr", kind)
+    elif kind in ("fifo-depth", "fifo-background"):
+        _special(folder / "x.exr", kind)
+        args += [f"--{kind[5:]}", folder / "x.exr"]
+    elif kind == "fifo-mask":
+        _special(folder / "m.png", kind)
+        args = ["compare", folder / "in.exr", folder / "in.exr", "--mask", folder / "m.png"]
+    elif kind in ("fifo-output", "chardev-output"):
+        _special(out, kind)
+    elif kind == "fifo-preview":
+        _special(out.with_suffix(".png"), kind)
+    elif kind == "fifo-exr":  # a photograph's --exr beside its JPEG
+        from PIL import Image
+
+        Image.fromarray((rgba[..., :3] * 255).astype(np.uint8)).save(folder / "p.png")
+        Image.fromarray(np.full((h, w), 100, np.uint8)).save(folder / "d.png")
+        _special(folder / "x.exr", kind)
+        out = folder / "out.jpg"
+        args = ["refocus", folder / "p.png", "--disparity", folder / "d.png", "--K", "5",
+                "--disp-focus", "0.5", "-o", out, "--exr", folder / "x.exr", "-q"]
+    if kind == "cache-damaged":
+        args += ["--mpi-cache", folder / "cache"]
+    if not case["preview"] and args[0] == "refocus" and kind != "fifo-preview":
+        args.append("--no-preview")
+    outputs = [] if args[0] == "compare" else [out] + (
+        [out.with_suffix(".png")] if "--no-preview" not in args and out.suffix == ".exr" else [])
+    return args, outputs
+
+
+def _damage_cache(folder: Path, case) -> None:
+    """Damage the entry an earlier run left in ``folder / "cache"``."""
+    for p in sorted((folder / "cache").glob("*")):
+        data = bytearray(p.read_bytes())
+        if case["damage"] == "truncate":
+            data = data[: len(data) // 2]
+        elif case["damage"] == "flip" and data:
+            data[case["seed"] % len(data)] ^= 0xFF
+        elif case["damage"] == "json" and p.suffix == ".json":
+            data = bytearray(b'{"a": ' * 3000 + b"1" + b"}" * 3000)
+        elif case["damage"] == "nan" and p.suffix == ".npz":
+            from mpib_validate.runtime.layers.mpi import load_mpi, save_mpi
+
+            try:
+                mpi = load_mpi(p)
+            except Exception:  # noqa: BLE001 - already unreadable
+                continue
+            for layer in mpi.layers:
+                if layer.rgba is not None and layer.rgba.size:
+                    layer.rgba.flat[0] = np.nan
+                    break
+            save_mpi(mpi, p)
+            continue
+        p.write_bytes(bytes(data))
+
+
+def _in_a_child(args, limit: int | None, delay: float | None) -> tuple[int, str, str]:
+    """``mpib ARGS`` in a forked child (the modules already imported) under a file-size
+    limit of ``limit`` bytes (a full disk: writes past it fail) or a SIGTERM after
+    ``delay`` seconds; ``(status, stdout, stderr)``."""
+    import resource
+    import signal
+    import time
+
+    out_fd, out_path = tempfile.mkstemp()
+    err_fd, err_path = tempfile.mkstemp()
+    pid = os.fork()
+    if pid == 0:  # the child: never returns to pytest
+        rc = 99
+        try:
+            # a SIGTERM after the command's own handler is gone (it ended) is ignored
+            signal.signal(signal.SIGTERM, lambda *a: None)
+            hard = resource.getrlimit(resource.RLIMIT_FSIZE)[1]
+            if limit is not None:
+                signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+                resource.setrlimit(resource.RLIMIT_FSIZE, (limit, hard))
+            if delay is not None:
+                signal.signal(signal.SIGALRM, lambda *a: os.kill(os.getpid(), signal.SIGTERM))
+                signal.setitimer(signal.ITIMER_REAL, max(delay, 1e-3))
+            rc, out, err = run(*args)  # a traceback comes back as status -1 in err
+            signal.setitimer(signal.ITIMER_REAL, 0)
+            resource.setrlimit(resource.RLIMIT_FSIZE, (hard, hard))
+            os.write(out_fd, out.encode())
+            os.write(err_fd, err.encode())
+        finally:
+            os._exit(rc & 0xFF)
+    os.close(out_fd)
+    os.close(err_fd)
+    t0 = time.monotonic()
+    while True:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            break
+        if time.monotonic() - t0 > HANG_S:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+            raise AssertionError(f"hung: {args}")
+        time.sleep(0.01)
+    rc = os.waitstatus_to_exitcode(status)
+    rc = -1 if rc == 255 else rc
+    text = Path(out_path).read_text(), Path(err_path).read_text()
+    os.unlink(out_path)
+    os.unlink(err_path)
+    return rc, *text
+
+
+def _run_with_alarm(args) -> tuple[int, str, str]:
+    """``mpib ARGS`` in this process; a hang (a FIFO opened for reading) fails after
+    HANG_S seconds."""
+    import signal
+
+    def hang(*a):
+        raise AssertionError(f"hung: {args}")
+
+    previous = signal.signal(signal.SIGALRM, hang)
+    signal.alarm(HANG_S)
+    try:
+        return run(*args)
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+
+
+def _every_kind(test):
+    """One explicit example of each kind of hostile file (the drawn ones add more)."""
+    for i, kind in enumerate(HOSTILE):
+        if kind.startswith("chardev") and not CHARDEV:
+            continue
+        test = example(dict(kind=kind, h=4, w=5, seed=i, value=np.nan, group=i % 2,
+                            limit=100 * i, delay=0.002 * i, preview=True, photo=False,
+                            damage=["truncate", "flip", "json", "nan"][i % 4]))(test)
+    return test
+
+
+@settings(FUZZ, max_examples=2 * EXAMPLES)  # twenty kinds of hostile file
+@given(hostile_cases())
+@_every_kind
+def test_hostile_files_never_hang_replace_or_corrupt(case):
+    folder = Path(tempfile.mkdtemp(prefix="mpib-fuzz-"))
+    try:
+        args, outputs = _write_hostile_inputs(folder, case)
+        kind = case["kind"]
+        if kind == "cache-damaged":  # a first run leaves an entry, which is then damaged
+            rc, _, err = run(*args)
+            assert rc == 0, err
+            for o in outputs:
+                o.unlink(missing_ok=True)
+            _damage_cache(folder, case)
+        specials, before = _kinds(folder), _snapshot(folder)
+        if kind == "full-disk":
+            rc, out, err = _in_a_child(args, case["limit"], None)
+        elif kind == "sigterm":
+            rc, out, err = _in_a_child(args, None, case["delay"])
+        else:
+            rc, out, err = _run_with_alarm(args)
+        event(f"{kind}: exit {rc}")  # shown by --hypothesis-show-statistics
+        assert _kinds(folder) == specials, f"a special file was replaced: {err}"
+        if kind == "sigterm" and rc == 143:  # stopped: nothing written, the line says so
+            assert "terminated" in err and "Traceback" not in err, err
+            after = _snapshot(folder)
+            assert sorted(set(after) - set(before)) == [], "partial output after SIGTERM"
+            return
+        if kind == "cache-damaged":  # the cache may be rebuilt in place
+            before = {k: v for k, v in before.items() if k.parts[0] != "cache"}
+            names = ["in.exr", "cache", "out"]
+        else:
+            names = ["in.exr", "x.exr", "bg.exr", "m.png", "out", "p.png", "d.png"]
+        _check(rc, out, err, args[0], names, outputs, before, folder,
+               replaced=Path("cache") if kind == "cache-damaged" else None)
+        if rc == 0 and args[0] == "refocus" and outputs[0].suffix == ".exr":
+            used = json.loads(read_exr(outputs[0]).header["mpib"])["camera"]
+            if used.get("from", {}).get("blur_parameter", "").startswith("'"):  # a header's A
+                assert (used["width"], used["height"]) == (case["w"], case["h"])
+                assert used["blur_parameter"] != 150.0, "another image's A was used"
+        if kind == "full-disk" and rc != 0:  # every temporary removed too
+            assert not [p for p in folder.rglob(".*tmp-*")], "temporary files left"
     finally:
         shutil.rmtree(folder, ignore_errors=True)
