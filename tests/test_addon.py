@@ -112,6 +112,8 @@ def test_refocus_of_a_cycles_render_approaches_cycles_depth_of_field(session):
     ("no_depth_pass", "no Depth pass"),
     ("depth_all_infinite", "at infinity"),
     ("nan", "NaN"),
+    ("group_nan", "mpib_group_1.Combined.): colour is NaN or infinite"),
+    ("no_camera", "the scene has no camera"),
     ("missing_file", "does not exist"),
     ("camera_without_dof", "refocused:"),
     ("camera_with_dof", "Camera > Depth of Field"),
@@ -127,6 +129,14 @@ def test_bad_input_gets_a_report(session, case, text):
         assert msg.startswith("error:")
         assert out["calls"][case][0].startswith("RuntimeError: Error:"), out["calls"][case]
         assert "Traceback" not in out["calls"][case][0]
+
+
+def test_a_refused_refocus_writes_nothing(session):
+    """A layered render with a NaN in a group's colour, with Save EXR on: the report
+    names the layer, and no refocused file (nor a temporary one) is left beside it."""
+    out, _ = session
+    assert out["group_nan_written"] == [], out["group_nan_written"]
+    assert out["group_ok_written"] == ["group_ok_refocused.exr"], out["group_ok_written"]
 
 
 def test_focus_pull_shows_a_preview_then_the_full_result_from_the_kept_mpi(session):

@@ -346,6 +346,37 @@ write_exr(nan_path, {**channels_from_rgba(np.ones((8, 8, 4), np.float32)), "Dept
 sc = cycles_scene(dof=False, spp=2)
 calls["nan"] = call(bpy.ops.mpib.refocus_file, filepath=nan_path)
 reports["nan"] = sc.mpib.last_message
+# a layered render whose group colour holds a NaN, saved beside it: one report line,
+# no refocused file (the NaN came out as an all-NaN channel with exit 0 on the CLI)
+group_nan = os.path.join(work, "group_nan.exr")
+layers = {}
+for k, z in enumerate((8.0, 2.0)):
+    rgba = np.ones((8, 8, 4), np.float32)
+    rgba[..., :3] = 0.2 + 0.6 * k
+    if k == 1:
+        rgba[:4] = 0
+        rgba[5, 5, 1] = np.nan
+    layers.update(channels_from_rgba(rgba, f"mpib_group_{k}.Combined."))
+    layers[f"mpib_group_{k}.Depth.Z"] = np.full((8, 8), z, np.float32)
+write_exr(group_nan, layers)
+sc.mpib.save_exr = True
+sc.render.filepath = work + os.sep  # the refocused EXR goes beside the render output
+calls["group_nan"] = call(bpy.ops.mpib.refocus_file, filepath=group_nan)
+reports["group_nan"] = sc.mpib.last_message
+out["group_nan_written"] = sorted(n for n in os.listdir(work) if n.startswith(("group_nan_", ".group_nan")))
+# the same render without the NaN is saved there (the check above sees a written file)
+clean = os.path.join(work, "group_ok.exr")
+layers["mpib_group_1.Combined.G"][5, 5] = 0.0
+write_exr(clean, layers)
+calls["group_ok"] = call(bpy.ops.mpib.refocus_file, filepath=clean)
+out["group_ok_written"] = sorted(n for n in os.listdir(work) if n.startswith("group_ok_"))
+sc.mpib.save_exr = False
+# no camera in the scene
+camera = sc.camera
+sc.camera = None
+calls["no_camera"] = call(bpy.ops.mpib.refocus_file, filepath=nan_path)
+reports["no_camera"] = sc.mpib.last_message
+sc.camera = camera
 calls["missing_file"] = call(bpy.ops.mpib.refocus_file, filepath=os.path.join(work, "missing.exr"))
 reports["missing_file"] = sc.mpib.last_message
 refocus_bad_render("camera_without_dof", dof=False)  # the documented workflow: no warning
