@@ -382,6 +382,21 @@ def test_an_exr_cut_short_by_a_full_disk_is_an_error(tmp_path, limit):
     assert _files(tmp_path) == before and sorted(os.listdir(tmp_path)) == ["in.exr"]
 
 
+def test_a_failed_photo_write_names_the_file(tmp_path):
+    """Pillow's own error for a full disk names no file ("[Errno 27] File too large")."""
+    from PIL import Image
+
+    rng = np.random.default_rng(3)
+    Image.fromarray(rng.integers(0, 255, (48, 64, 3)).astype(np.uint8)).save(tmp_path / "p.png")
+    Image.fromarray(np.full((48, 64), 100, np.uint8)).save(tmp_path / "d.png")
+    rc, out, err = _mpib("refocus", tmp_path / "p.png", "--disparity", tmp_path / "d.png",
+                         "--K", 5, "--disp-focus", 0.5, "-o", tmp_path / "o.png", "-q",
+                         preexec=_file_size_limit(3000))
+    line = one_line_error(rc, err)
+    assert "o.png" in line and "File too large" in line
+    assert sorted(os.listdir(tmp_path)) == ["d.png", "p.png"]
+
+
 def test_a_truncated_exr_is_found_before_it_is_placed(tmp_path):
     from mpib_validate.runtime.io.exr import ExrError, _check_complete
 

@@ -207,6 +207,10 @@ def atomic_path(path: str | os.PathLike):
     try:
         yield tmp
         place(tmp, path)
+    except OSError as exc:  # a full disk, a lost permission: named by the target
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise OutputError(f"cannot write '{path}': {exc.strerror or exc}") from None
     except BaseException:
         with contextlib.suppress(OSError):
             tmp.unlink()
