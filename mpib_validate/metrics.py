@@ -176,3 +176,54 @@ def all_metrics(ref, test, mask=None, peak: float | None = None, with_flip: bool
         out["flip"] = flip(ac, bc)
         out["flip_hdr"] = flip(a, b, hdr=True)
     return out
+
+
+#: :func:`sharp_remnants`' defaults. A lens blurs a point by a disk of radius
+#: ``r = A |d - d_f|``; past ``REMNANT_BLUR_PX`` px a disk spreads a line one or two
+#: pixels wide over at least 12 px, dividing its contrast by 6 or more, and its 3x3
+#: top-hat (below) drops further, so a line kept at more than ``REMNANT_KEEP`` (6/255 of
+#: display value, about 2.5 times an 8-bit JPEG's noise) cannot come from the lens. The
+#: reference must itself hold less than ``REMNANT_SMOOTH`` (2/255, under JPEG noise)
+#: there: a line that the reference keeps is the scene's, not the method's.
+REMNANT_BLUR_PX = 6.0
+REMNANT_SMOOTH = 2.0 / 255.0
+REMNANT_KEEP = 6.0 / 255.0
+
+
+def thin_structure(img: np.ndarray, size: int = 3) -> np.ndarray:
+    """``(H, W)``: the contrast of structures narrower than ``size`` px (lines, dots), the
+    larger of the white top-hat ``I - open(I)`` and the black top-hat ``close(I) - I``
+    (grey opening/closing with a ``size x size`` square), the largest over the channels;
+    in the image's own units. A step edge or a smooth ramp gives 0 (the opening and the
+    closing keep them), so an edge that is rightly sharp is not counted."""
+    from scipy import ndimage
+
+    x = _rgb(img)
+    out = np.zeros(x.shape[:2])
+    for c in range(x.shape[2]):
+        ch = x[..., c]
+        out = np.maximum(out, ch - ndimage.grey_opening(ch, (size, size), mode="nearest"))
+        out = np.maximum(out, ndimage.grey_closing(ch, (size, size), mode="nearest") - ch)
+    return out
+
+
+def sharp_remnants(output, reference, disparity, blur_parameter: float,
+                   focus_disparity: float, blur_px: float = REMNANT_BLUR_PX,
+                   smooth: float = REMNANT_SMOOTH, keep: float = REMNANT_KEEP):
+    """Sharp remnants of a refocused image: ``(remnants, must_blur)``, boolean ``(H, W)``.
+
+    ``must_blur``: pixels whose whole 5x5 window ``disparity`` blurs by more than
+    ``blur_px``: ``min_5x5 A |d - d_f| > blur_px`` (px). ``remnants``: those of them
+    where :func:`thin_structure` of ``reference`` is below ``smooth`` and that of
+    ``output`` above ``keep``, a line or dot one or two pixels wide that a blur of that
+    radius cannot leave. ``output`` and ``reference`` are display-encoded images in
+    [0, 1] (thresholds in those units; :data:`REMNANT_BLUR_PX` for the reasoning);
+    the reference is a render that must be smooth there (the exact depth's, or the
+    unrefined one's for a photograph), ``disparity`` the map that says where the blur
+    is (the input's for a photograph)."""
+    from scipy import ndimage
+
+    r = blur_parameter * np.abs(np.asarray(disparity, np.float64) - focus_disparity)
+    must = ndimage.minimum_filter(r, 5, mode="nearest") > blur_px
+    rem = must & (thin_structure(reference) < smooth) & (thin_structure(output) > keep)
+    return rem, must
