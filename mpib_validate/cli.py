@@ -66,6 +66,23 @@ _POSITIVE = _number(float, 0, strict=True)
 _NON_NEGATIVE = _number(float, 0)
 
 
+def _FRACTION(text: str) -> float:
+    """An argparse type: a finite number or a fraction ``a/b`` of two finite numbers
+    (``207/255``, the official demo's syntax), ``b != 0``."""
+    num, sep, den = text.partition("/")
+    why = f"must be a finite number or a fraction a/b (such as 207/255), got {text!r}"
+    try:
+        v = float(num) / float(den) if sep else float(num)
+    except (ValueError, ZeroDivisionError):
+        raise argparse.ArgumentTypeError(why) from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(why)
+    return v
+
+
+_FRACTION.__name__ = "fraction"
+
+
 def _limit(args) -> int:
     from mpib_validate.runtime.budget import memory_limit
 
@@ -410,7 +427,7 @@ parameters, paper and physical (blur radius r in pixels, disparity d):
 examples:
   mpib refocus render.exr -o refocused.exr                  # lens and focus from the EXR header
   mpib refocus render.exr -o near.exr --fstop 2 --focus-pixel 40,60 --mpi-cache mpi-cache/
-  mpib refocus photo.jpg --disparity disp.png --K 60 --disp-focus 0.81 -o out.jpg
+  mpib refocus photo.jpg --disparity disp.png --K 60 --disp-focus 207/255 -o out.jpg
 """
 
 _MAIN_EPILOG = """\
@@ -556,7 +573,7 @@ def _refocus_photo(args) -> int:
 
     from mpib_validate.runtime.camera import OFFICIAL_BINS, from_paper, widen_focus
     from mpib_validate.runtime.io.atomic import check_outputs
-    from mpib_validate.runtime.io.photo import Encoding, image_format, output_bits, read_disparity, read_photo, write_photo
+    from mpib_validate.runtime.io.photo import Encoding, image_format, output_bits, read_disparity, read_photo, upsample_disparity, write_photo
     from mpib_validate.runtime.layers.passes import depth_to_disparity
     from mpib_validate.runtime.refocus import _depth_channel, focus_from_pixel, passes_from_photo, write_result
     from mpib_validate.runtime.request import RefocusRequest
@@ -601,11 +618,19 @@ def _refocus_photo(args) -> int:
     photo = read_photo(args.input, _photo_encoding(args))
     H, W = photo.rgb.shape[:2]
     if args.disparity is not None:
-        dmap = read_disparity(args.disparity, (H, W), normalised=args.K is not None)
+        dmap = read_disparity(args.disparity, (H, W), normalised=args.K is not None,
+                              any_size=True)
         if dmap.normalised and lens:
             raise CliError(f"'{args.disparity}' is a normalised {dmap.kind} map, which has no "
                            f"physical scale: give --K instead of {', '.join(lens)}")
         D, dsrc = dmap.values, f"{args.disparity} ({dmap.kind} disparity)"
+        if D.shape != (H, W):
+            print(f"mpib refocus: notice: disparity map '{args.disparity}' is "
+                  f"{D.shape[1]}x{D.shape[0]}: upsampled to {W}x{H} (bilinear; the "
+                  f"refinement moves its edges onto the photograph's)", file=sys.stderr,
+                  flush=True)
+            D = upsample_disparity(D, (H, W))
+            dsrc = f"{dsrc}, upsampled from {dmap.values.shape[1]}x{dmap.values.shape[0]}"
     else:
         if args.K is not None:
             raise CliError("--K is per unit of a [0, 1] normalised disparity: give "
@@ -973,7 +998,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--K and --disp-focus (or --focus-pixel). See the table below.")
     photo.add_argument("--disparity", metavar="FILE",
                        help="disparity map: 8/16-bit grey PNG/JPEG/TIFF (scaled to [0, 1]: "
-                            "v/255, v/65535) or float EXR/TIFF/.npy; 0 = infinitely far")
+                            "v/255, v/65535) or float EXR/TIFF/.npy; 0 = infinitely far; "
+                            "a map at a network's resolution (same aspect ratio) is "
+                            "upsampled")
     photo.add_argument("--K", type=_POSITIVE, metavar="K",
                        help="the paper's blur parameter: blur radius in pixels per unit of the "
                             "[0, 1] disparity, r = K |d - disp_focus| (A = K)")
@@ -1001,9 +1028,9 @@ def build_parser() -> argparse.ArgumentParser:
     g2.add_argument("--focus-disparity", type=float, metavar="D",
                     help="focus disparity (1/scene-unit)")
     g2.add_argument("--focus-pixel", type=_parse_pixel, metavar="X,Y", help="focus on pixel X,Y")
-    g2.add_argument("--disp-focus", type=_FINITE, metavar="D",
-                    help="the paper's focus: the normalised disparity in focus, in [0, 1] "
-                         "(with --K)")
+    g2.add_argument("--disp-focus", type=_FRACTION, metavar="D",
+                    help="the paper's focus: the normalised disparity in focus, in [0, 1], "
+                         "a number or a fraction a/b such as 207/255 (with --K)")
     lens = f.add_argument_group(
         "camera", "By default focus and aperture come from the input's header (a render made "
         "with the MPIB extension enabled, or an mpib render). Each option below replaces "

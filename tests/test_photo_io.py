@@ -285,6 +285,46 @@ def test_jpeg_and_png_in_jpeg_out_one_command(tmp_path):
     assert "A = K = 24 px" in stdout and "gamma 2.2" in stdout
 
 
+def test_disp_focus_takes_the_official_demos_fraction(tmp_path):
+    """``--disp-focus 207/255`` is the number 207/255: the same image to the bit."""
+    photo = _save(tmp_path / "photo.png", _texture(7))
+    disp = _save(tmp_path / "disp.png", _disparity_u8())
+    outs = []
+    for i, focus in enumerate(("207/255", repr(207 / 255))):
+        outs.append(tmp_path / f"o{i}.png")
+        rc, _, err = run("refocus", photo, "--disparity", disp, "--K", 20, "--disp-focus",
+                         focus, "-o", outs[-1], "-q")
+        assert rc == 0, err
+    assert np.array_equal(np.asarray(Image.open(outs[0])), np.asarray(Image.open(outs[1])))
+
+
+def test_a_network_resolution_map_is_upsampled_with_a_notice(tmp_path):
+    """A map at a quarter of the photograph's size (same aspect ratio) is accepted: one
+    notice line, and the result is that of the same map upsampled beforehand by
+    :func:`upsample_disparity` (bilinear, centres aligned) and given at full size."""
+    from mpib_validate.runtime.io.photo import upsample_disparity
+
+    photo = _save(tmp_path / "photo.png", _texture(8))
+    full = _disparity_u8()
+    low = full.reshape(H // 4, 4, W // 4, 4).mean(axis=(1, 3)).round().astype(np.uint8)
+    small = _save(tmp_path / "small.png", low)
+    up = upsample_disparity(low / 255.0, (H, W))
+    assert up.shape == (H, W)
+    # bilinear with centres aligned: the map's mean is kept within a level
+    assert abs(up.mean() - low.mean() / 255.0) < 1 / 255
+    np.save(tmp_path / "up.npy", up.astype(np.float32))
+    common = ["--K", 20, "--disp-focus", "0.5", "-q", "--refine", "guided"]
+    rc, _, err = run("refocus", photo, "--disparity", small, "-o", tmp_path / "a.png", *common)
+    assert rc == 0, err
+    notice = [ln for ln in err.splitlines() if "notice" in ln]
+    assert len(notice) == 1 and "small.png" in notice[0] and f"{W}x{H}" in notice[0]
+    rc, _, err = run("refocus", photo, "--disparity", tmp_path / "up.npy", "-o",
+                     tmp_path / "b.png", *common)
+    assert rc == 0, err
+    assert np.array_equal(np.asarray(Image.open(tmp_path / "a.png")),
+                          np.asarray(Image.open(tmp_path / "b.png")))
+
+
 @pytest.mark.parametrize("bits", [8, 16])
 def test_in_focus_constant_disparity_png_round_trips_exactly(tmp_path, bits):
     """One plane in focus: radius 0, the identity kernel; the float path adds ~1e-12
@@ -385,7 +425,7 @@ def test_float_disparity_and_exr_photo(tmp_path):
 def _bad_cases(tmp_path):
     photo = _save(tmp_path / "photo.jpg", _texture(10))
     disp = _save(tmp_path / "disp.png", _disparity_u8())
-    small = _save(tmp_path / "small.png", np.zeros((32, 48), np.uint8))
+    small = _save(tmp_path / "small.png", np.zeros((32, 32), np.uint8))  # square: 1:1, not 3:2
     colour = _save(tmp_path / "colour.png", _texture(11))
     nan = np.full((H, W), 0.5, np.float32)
     nan[3, 4] = np.nan
@@ -399,7 +439,13 @@ def _bad_cases(tmp_path):
     trans = _save(tmp_path / "trans.png", rgba)
     k = ["--K", 20, "--disp-focus", 0.5]
     return {
-        "size": ([photo, "--disparity", small, *k], "small.png"),
+        "aspect ratio": ([photo, "--disparity", small, *k], "small.png"),
+        "focus fraction over zero": ([photo, "--disparity", disp, "--K", 20, "--disp-focus",
+                                      "207/0"], "--disp-focus"),
+        "focus fraction of words": ([photo, "--disparity", disp, "--K", 20, "--disp-focus",
+                                     "a/b"], "--disp-focus"),
+        "focus fraction above one": ([photo, "--disparity", disp, "--K", 20, "--disp-focus",
+                                      "300/255"], "--disp-focus"),
         "colour map": ([photo, "--disparity", colour, *k], "colour image"),
         "nan": ([photo, "--disparity", tmp_path / "nan.npy", *k], "NaN"),
         "inf": ([photo, "--disparity", tmp_path / "inf.npy", *k], "infinite"),
