@@ -3,6 +3,7 @@ photos bench suite on a tiny run (the numbers come from `mpib bench --suite phot
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -127,7 +128,8 @@ def test_refine_option_in_passes_settings():
 def test_photos_suite_on_one_tiny_scene_per_family(tmp_path):
     from mpib_validate.bench import photos
 
-    r = photos.run(tmp_path, seeds=range(1), size=32, ref_spp=64, hd=False, figure=False)
+    r = photos.run(tmp_path, seeds=range(1), size=32, ref_spp=64, hd=False, figure=False,
+                   remnants=False)
     methods = {row["method"] for row in r["rows"]}
     for preset in ("draft", "default", "best"):
         for kind in ("exact (bound)", "degraded", "degraded + guided"):
@@ -284,3 +286,40 @@ def test_guided_thin_gives_a_thin_wire_its_disparity_back():
     # the wall keeps its value, or the prediction's within keep_px (0.5 px / A)
     np.testing.assert_allclose(thin[8:40, :18], 0.1, atol=0.5 / 40.0)
     np.testing.assert_allclose(thin[8:40, 29:], 0.1, atol=0.5 / 40.0)
+
+
+def test_sharp_remnants_see_a_line_and_not_an_edge():
+    """The measure counts a line one or two pixels wide kept in the must-blur region,
+    not a step edge, and nothing where the reference holds the line too."""
+    from mpib_validate.metrics import sharp_remnants, thin_structure
+
+    smooth = np.tile(np.linspace(0.2, 0.6, 64)[None, :, None], (48, 1, 3))
+    step = smooth.copy()
+    step[:, 32:] += 0.3
+    line = smooth.copy()
+    line[20:22, 10:50] -= 0.1  # 2 px wide, 0.1 deep: 25/255
+    assert thin_structure(step)[:, 1:-1].max() < 1e-12  # (the border column: one ramp step)
+    D = np.full((48, 64), 0.9)  # A |d - d_f| = 20 px everywhere
+    rem, must = sharp_remnants(line, smooth, D, 40.0, 0.4)
+    assert must.all() and rem.sum() == 2 * 40
+    assert not sharp_remnants(step, smooth, D, 40.0, 0.4)[0].any()
+    assert not sharp_remnants(line, line, D, 40.0, 0.4)[0].any()  # the reference's own
+    assert not sharp_remnants(line, smooth, D, 40.0, 0.85)[0].any()  # in focus: may be sharp
+
+
+def test_remnant_table_and_crops_on_one_shipped_photograph(tmp_path):
+    """The photos suite's remnant part on scikit-image's cat (451x300): a row per focus,
+    counts within their must-blur regions, the crops figure with four columns."""
+    from PIL import Image
+
+    from mpib_validate.bench import remnants
+
+    r = remnants.run(tmp_path, photos=("chelsea",))
+    assert [row["focus"] for row in r["rows"]] == ["near", "far"]
+    for row in r["rows"]:
+        assert 0 <= row["remnants_input"] <= row["must_blur_input"] > 0
+        assert 0 <= row["remnants_true"] <= row["must_blur_true"] > 0
+        assert row["psnr_guided"] > 30 and row["psnr_off"] > 30
+    with Image.open(tmp_path / "remnants.png") as im:
+        assert im.width == 3 * 4 * (48 + 4) and im.height == 3 * 2 * (48 + 4)
+    assert "| chelsea (451x300) | near |" in "\n".join(remnants.markdown(r))
