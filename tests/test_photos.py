@@ -288,6 +288,58 @@ def test_guided_thin_gives_a_thin_wire_its_disparity_back():
     np.testing.assert_allclose(thin[8:40, 29:], 0.1, atol=0.5 / 40.0)
 
 
+def _face_and_temple(shift_px=-1.5, K=60.0, n=128, edge=64):
+    """A synthetic portrait detail: a skin-coloured near surface (d = 0.8, left of
+    column ``edge``) before a dark far one (d = 0.2), and a dark line two pixels wide
+    (a temple of sunglasses) across the skin up to its outline. The map is shaped like
+    a network's: Gaussian blur 2 px, 4x down (block mean) and bilinear up, shifted
+    ``shift_px`` in x (into the skin: the map's edge lies inside the outline). Returns
+    (linear colour, predicted disparity)."""
+    from scipy import ndimage
+
+    srgb = np.full((n, n, 3), 0.12)
+    srgb[:, :edge] = (0.85, 0.62, 0.5)
+    srgb[n // 2 - 1:n // 2 + 1, :edge] = 0.08
+    D = np.full((n, n), 0.2)
+    D[:, :edge] = 0.8
+    low = ndimage.gaussian_filter(D, 2.0, mode="nearest").reshape(
+        n // 4, 4, n // 4, 4).mean(axis=(1, 3))
+    c = (np.arange(n) + 0.5) / 4 - 0.5
+    gy, gx = np.meshgrid(c, c, indexing="ij")
+    pred = ndimage.map_coordinates(low, [gy, gx], order=1, mode="nearest")
+    pred = ndimage.shift(pred, (0, shift_px), order=1, mode="nearest")
+    return srgb ** 2.2, pred
+
+
+def _refocused(colour, D, K, d_f, refine):
+    """The default preset's Eq. 1 result, display-encoded (``c^(1/2.2)``, 8-bit levels)."""
+    from mpib_validate.runtime.compositor.composite import render_subapertures
+    from mpib_validate.runtime.presets import PRESETS
+
+    p = PRESETS["default"]
+    mpi, _ = layers_from_passes(colour, D, K, dataclasses.replace(p.passes, refine=refine))
+    out = render_subapertures(mpi, K, d_f, p.subapertures, p.composite)[..., :3]
+    return np.round(np.clip(out, 0, 1) ** (1 / 2.2) * 255) / 255
+
+
+@pytest.mark.parametrize("shift_px", [-1.5, -2.0])
+def test_refinement_draws_no_sharp_line_into_the_blur(shift_px):
+    """Focused on the far side (K = 60, the paper's), the skin blurs by 36 px. Moved
+    across the predicted edge by its colour (dark, like the background), the temple's
+    end became a line at the background's depth, in focus inside the blurred face
+    (6 and 2 sharp remnants before the flips had to be wide). The unrefined result is
+    the smooth reference."""
+    from mpib_validate.metrics import sharp_remnants
+
+    colour, pred = _face_and_temple(shift_px)
+    K, d_f = 60.0, 0.2
+    off = _refocused(colour, pred, K, d_f, "off")
+    guided = _refocused(colour, pred, K, d_f, "guided")
+    rem, must = sharp_remnants(guided, off, pred, K, d_f)
+    assert must.sum() > 0.4 * must.size  # the skin and its outline must blur
+    assert rem.sum() == 0, np.argwhere(rem)[:8].tolist()
+
+
 def test_sharp_remnants_see_a_line_and_not_an_edge():
     """The measure counts a line one or two pixels wide kept in the must-blur region,
     not a step edge, and nothing where the reference holds the line too."""
