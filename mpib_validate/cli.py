@@ -484,10 +484,10 @@ example:
 """
 
 
-def _plan_and_refocus(args, request):
-    """Estimate the memory of the request (refused past --max-memory-gb), print the
-    plan, and refocus with a progress bar on a terminal (with --mpi-cache: through the
-    disk cache)."""
+def _plan_and_refocus(args, request, notices=()):
+    """Estimate the memory of the request (refused past --max-memory-gb), print
+    ``notices`` (on stderr, once the input is accepted) and the plan, and refocus with a
+    progress bar on a terminal (with --mpi-cache: through the disk cache)."""
     from mpib_validate.runtime import budget
     from mpib_validate.runtime.layers.cache import DiskCache
     from mpib_validate.runtime.refocus import refocus
@@ -495,6 +495,8 @@ def _plan_and_refocus(args, request):
     H, W = request.passes.depth.shape
     est = budget.estimate_request(request)
     budget.check(est, _limit(args))
+    for notice in notices:
+        print(f"mpib refocus: notice: {notice}", file=sys.stderr, flush=True)
     print(f"refocusing {W}x{H} ({request.preset.name}): {est.describe()}", flush=True)
     bar = _progress_bar(not args.quiet, "refocus", 100, "%")
 
@@ -617,6 +619,7 @@ def _refocus_photo(args) -> int:
         (args.disparity, "map"), (args.depth, "exr")) if p])
     photo = read_photo(args.input, _photo_encoding(args))
     H, W = photo.rgb.shape[:2]
+    notices = []  # printed once the input is accepted (a refusal is one line)
     if args.disparity is not None:
         dmap = read_disparity(args.disparity, (H, W), normalised=args.K is not None,
                               any_size=True)
@@ -625,10 +628,9 @@ def _refocus_photo(args) -> int:
                            f"physical scale: give --K instead of {', '.join(lens)}")
         D, dsrc = dmap.values, f"{args.disparity} ({dmap.kind} disparity)"
         if D.shape != (H, W):
-            print(f"mpib refocus: notice: disparity map '{args.disparity}' is "
-                  f"{D.shape[1]}x{D.shape[0]}: upsampled to {W}x{H} (bilinear; the "
-                  f"refinement moves its edges onto the photograph's)", file=sys.stderr,
-                  flush=True)
+            notices.append(f"disparity map '{args.disparity}' is {D.shape[1]}x{D.shape[0]}: "
+                           f"upsampled to {W}x{H} (bilinear; the refinement moves its edges "
+                           f"onto the photograph's)")
             D = upsample_disparity(D, (H, W))
             dsrc = f"{dsrc}, upsampled from {dmap.values.shape[1]}x{dmap.values.shape[0]}"
     else:
@@ -675,7 +677,8 @@ def _refocus_photo(args) -> int:
     # depth EXR is taken as a renderer's exact depth
     refine = args.refine or ("guided" if args.disparity is not None else "off")
     result = _plan_and_refocus(args, RefocusRequest(passes, A, d_f, args.preset, args.far_limit,
-                                                    refine=refine, aperture=aperture))
+                                                    refine=refine, aperture=aperture),
+                               notices=notices)
     result.info["refine"] = refine
     result.info["camera"] = camera_info
     result.info["encoding"] = photo.encoding.describe()
