@@ -474,8 +474,8 @@ def read_disparity(path, shape, normalised: bool, any_size: bool = False) -> Sca
     """A disparity map for a ``shape = (H, W)`` photograph (:func:`read_scalar_map`),
     checked: the same size (with ``any_size``, any size of the same aspect ratio, for
     the caller to upsample: the map's sides scaled to the photograph's width match its
-    height to within one of the map's pixels), no negative value (disparity ``1/Z`` is 0 at infinity and
-    positive nearer), and with ``normalised`` (the paper's ``K`` convention) every value
+    height to within one of the map's pixels), no negative value (disparity ``1/Z`` is
+    0 at infinity and positive nearer), and with ``normalised`` (the paper's ``K`` convention) every value
     in [0, 1]. A float map outside [0, 1] is refused then rather than rescaled: its
     scale sets the blur, and guessing it would change ``K``'s meaning; give
     ``--blur-parameter`` (pixels per unit of the map's own disparity) instead. A
