@@ -68,10 +68,14 @@ def true_disparity(name: str):
     from skimage import data
 
     if name == "motorcycle":
-        from mpib_validate.bench.photos import load_motorcycle
+        from scipy import ndimage
 
-        left = data.stereo_motorcycle()[0]
-        return left, load_motorcycle()[1]
+        # as bench.photos.load_motorcycle: unknown values (inf) take their nearest
+        # known one, then the map is normalised to [0, 1]
+        left, _, disp = data.stereo_motorcycle()
+        _, (iy, ix) = ndimage.distance_transform_edt(~np.isfinite(disp), return_indices=True)
+        disp = disp[iy, ix]
+        return left, (disp - disp.min()) / (disp.max() - disp.min())
     img = getattr(data, name)()
     H, W = img.shape[:2]
     s = (H, W)
