@@ -81,6 +81,10 @@ HERO_QUALITY = 88
 MIN_SIDE, MAX_SIDE = 16, 4096
 
 
+class DemoError(ValueError):
+    """A demo option the scenes cannot take; the message names it."""
+
+
 @dataclass(frozen=True)
 class DemoSettings:
     """Sizes and sample counts of a run (the defaults: ``make demo``).
@@ -105,10 +109,10 @@ class DemoSettings:
     def validate(self) -> "DemoSettings":
         """Refuse sizes the scenes cannot take, naming the option."""
         if not (MIN_SIDE <= self.width <= MAX_SIDE and MIN_SIDE <= self.height <= MAX_SIDE):
-            raise ValueError(f"--size {self.width}x{self.height}: each side must be "
+            raise DemoError(f"--size {self.width}x{self.height}: each side must be "
                              f"{MIN_SIDE} to {MAX_SIDE}")
         if not (MIN_SIDE <= self.card_size <= MAX_SIDE):
-            raise ValueError(f"--card-size {self.card_size}: must be {MIN_SIDE} to {MAX_SIDE}")
+            raise DemoError(f"--card-size {self.card_size}: must be {MIN_SIDE} to {MAX_SIDE}")
         return self
 
 
@@ -751,7 +755,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, hero=None, log=pri
     check_hero_path(hero)
     out = Path(out)
     if out.exists() and not out.is_dir():
-        raise ValueError(f"--out '{out}' is a file; give a folder for the gallery")
+        raise DemoError(f"--out '{out}' is a file; give a folder for the gallery")
     check_outputs([out / "index.html"], option="--out")
     out.mkdir(parents=True, exist_ok=True)
     t0, c0, load0 = time.perf_counter(), _cpu_seconds(), os.getloadavg()
