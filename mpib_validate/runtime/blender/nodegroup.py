@@ -57,7 +57,10 @@ animate focus and aperture):
    APIs; the radius is truncated to whole pixels, 5.x: Size in pixels, 4.x: Size in
    percent of the larger image side, at most 10 %), or on 5.x the Convolve node with an
    anti-aliased disk kernel ``clamp(r + 1/2 - |x|, 0, 1)`` built from nodes (fractional
-   radii; FFT, zero padded borders).
+   radii; FFT, zero padded borders). With a shaped aperture (``GroupSpec.blades``,
+   ``anamorphic``; 5.x) the Bokeh Image draws the camera's polygon and the Convolve
+   kernel is the polygon (or the stretched disk) built from nodes, turned over per slice
+   in front of the focus for odd blades (:class:`_ApertureOps`).
 5. The blurred layers of a slab summed (Math nodes), then Eq. 1 over the slabs far to
    near with Alpha Over (premultiplied): ``acc <- acc (1 - a_s) + (c_s, a_s)`` with
    ``(c_s, a_s)`` the slab's sum; output colour ``acc_rgb / acc_a`` (clamped >= 0),
