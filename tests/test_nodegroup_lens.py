@@ -249,3 +249,40 @@ def test_node_footprints_follow_the_ratio(side):
             assert max(abs(e) for e in r["axis_err_pct"]) < 2.0, r
     bad, _ = _node_footprints(ap, side, Aperture(6, math.radians(15), 1 / 1.5))
     assert min(max(abs(e) for e in r["axis_err_pct"]) for r in bad) > 10.0
+
+
+# --------------------------------------------------------------------------------------
+# The other Blender versions (environments as tests/test_nodegroup.py finds them)
+
+
+def test_newest_shaped_group_equals_the_numpy_model(tmp_path):
+    """The newest 5.x: 6 blades at 15 deg on Convolve and 5 blades at 10 deg on Bokeh Blur
+    (the Bokeh Image's Angle switched per slice), both keyed frames, equal the model."""
+    from tests.test_nodegroup import _bpy5x_python
+
+    python = _bpy5x_python()
+    if python is None:
+        pytest.skip("no Blender 5.x Python 3.13 environment (MPIB_BPY5X_PYTHON); not run")
+    for key, ap, blur in (("hex", HEX, "CONVOLVE"), ("penta", PENTA, "BOKEH")):
+        (tmp_path / key).mkdir()
+        res = _session(python, "render", _render_args(
+            tmp_path / key, frames=[1, 2], keys={"focus": [[1, 6.0], [2, 1.5]]}, blur=blur,
+            aperture=[ap.blades, ap.rotation, ap.ratio]))
+        assert res["version"].startswith("5.") and res["spec"]["blades"] == ap.blades
+        _assert_equals_the_model(((res, "1"), (res, "2")))
+
+
+def test_legacy_refuses_a_shaped_aperture_by_name(tmp_path):
+    """Blender 4.2: the operator refuses blades and a ratio in one line, builds nothing."""
+    from tests.test_nodegroup import _bpy42_python
+
+    python = _bpy42_python()
+    if python is None:
+        pytest.skip("no Blender 4.2 Python (MPIB_BPY42_PYTHON); the 4.2 check did not run")
+    for ap, words in ((HEX, "6 aperture blades on Blender 5.0 or later"),
+                      (Aperture(0, 0.0, 1.5), "cannot draw an anamorphic aperture ratio")):
+        work = tmp_path / str(ap.blades)
+        work.mkdir()
+        res = _session(python, "render", _render_args(work, aperture=[ap.blades, ap.rotation,
+                                                                      ap.ratio]))
+        assert res["operator"] == ["CANCELLED"] and words in res["message"], res["message"]
