@@ -190,6 +190,10 @@ class MPIB_OT_add_refocus_node(bpy.types.Operator):
         tree = ng.compositor_tree(scene, create=True)
         node = tree.nodes.get(ng.GROUP_NAME)
         group = node.node_tree if node is not None and ng.spec_of(node.node_tree) else None
+        if group is not None:  # the aperture inputs may go (a disk now): their drivers first
+            for name, *_ in ng.SHAPE_INPUTS:
+                if name in node.inputs:
+                    node.inputs[name].driver_remove("default_value")
         group = ng.build_group(graph, group=group)
         wiring = []
         node = ng.install(scene, group, changes=wiring)

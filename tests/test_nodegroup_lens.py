@@ -286,3 +286,26 @@ def test_legacy_refuses_a_shaped_aperture_by_name(tmp_path):
         res = _session(python, "render", _render_args(work, aperture=[ap.blades, ap.rotation,
                                                                       ap.ratio]))
         assert res["operator"] == ["CANCELLED"] and words in res["message"], res["message"]
+
+
+def test_regenerating_for_another_aperture_keeps_the_links():
+    """The group made for a disk, linked to a node after it, regenerated for 6 blades and
+    back: the aperture inputs come and go, the other sockets' links stay."""
+    bpy = pytest.importorskip("bpy")
+    from mpib_validate.runtime.blender.compat import compositor_tree
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    sc = bpy.context.scene
+    d = (0.1, 0.5)
+    group = ng.build_group(ng.describe(ng.make_spec(d, 20.0, blur="convolve")))
+    tree = compositor_tree(sc, create=True)
+    node = tree.nodes.new("CompositorNodeGroup")
+    node.node_tree = group
+    after = tree.nodes.new("CompositorNodeBlur")
+    tree.links.new(node.outputs["Image"], after.inputs["Image"])
+    for ap, has in ((HEX, True), (DISK, False)):
+        ng.build_group(ng.describe(ng.make_spec(d, 20.0, blur="convolve", aperture=ap)),
+                       group=group)
+        assert ("Aperture Rotation" in node.inputs) == has
+        assert after.inputs["Image"].is_linked
+        assert after.inputs["Image"].links[0].from_socket == node.outputs["Image"]

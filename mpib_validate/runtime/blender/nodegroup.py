@@ -1470,21 +1470,37 @@ class _Emitter:
         return dist
 
 
+def _new_input(group, name, stype, default, desc):
+    s = group.interface.new_socket(name, in_out="INPUT", socket_type=stype, description=desc)
+    s.default_value = default
+    if stype == "NodeSocketFloat" and name not in ("Depth", "Aperture Rotation"):
+        s.min_value = 0.0
+    return s
+
+
 def _ensure_interface(group, spec=None) -> None:
     """Give ``group`` exactly the sockets of :func:`interface_inputs` and :data:`OUTPUTS`;
     kept as they are when they already match (so links, values and drivers on group
-    nodes stay)."""
+    nodes stay). A group that differs only by the aperture inputs (:data:`SHAPE_INPUTS`:
+    the camera's blades or ratio changed) gets them added or removed, the other sockets
+    (and the links to them) kept."""
     inputs = interface_inputs(spec)
     want = [(n, "INPUT", t) for n, t, _, _ in inputs] + [(n, "OUTPUT", t) for n, t, _ in OUTPUTS]
     have = [(s.name, s.in_out, s.socket_type) for s in _interface_sockets(group)]
     if sorted(have) == sorted(want):
         return
+    shape = {(n, "INPUT", t) for n, t, _, _ in SHAPE_INPUTS}
+    if sorted(set(have) - shape) == sorted(set(want) - shape) and len(set(have)) == len(have):
+        for item in _interface_sockets(group):
+            if (item.name, item.in_out, item.socket_type) in shape - set(want):
+                group.interface.remove(item)
+        for name, stype, default, desc in inputs:
+            if (name, "INPUT", stype) in shape - set(have):
+                _new_input(group, name, stype, default, desc)
+        return
     group.interface.clear()
     for name, stype, default, desc in inputs:
-        s = group.interface.new_socket(name, in_out="INPUT", socket_type=stype, description=desc)
-        s.default_value = default
-        if stype == "NodeSocketFloat" and name not in ("Depth", "Aperture Rotation"):
-            s.min_value = 0.0
+        _new_input(group, name, stype, default, desc)
     for name, stype, desc in OUTPUTS:
         group.interface.new_socket(name, in_out="OUTPUT", socket_type=stype, description=desc)
 
