@@ -79,8 +79,8 @@ def shape_refusal(apertures, legacy: bool, blur: str) -> str | None:
     """Why the node group cannot draw the camera's aperture over the animation, or None.
     Blades are fixed when the group is made (one count for every frame); an anamorphic
     ratio needs Convolve (Bokeh Blur's Bokeh Image is square), so Blender 5.0 or later
-    and Blur Auto or Convolve; the Bokeh Image's Angle is a property in 4.2-4.5, not a
-    socket the rotation can drive, so blades need 5.0 or later too."""
+    and Blur Auto or Convolve. Blades work on 4.2-4.5 too (Bokeh Blur; drivers turn the
+    Bokeh Images)."""
     blades = sorted({a.blades for a in apertures})
     anamorphic = any(a.ratio != 1.0 for a in apertures)
     if len(blades) > 1:
@@ -91,9 +91,6 @@ def shape_refusal(apertures, legacy: bool, blur: str) -> str | None:
     if anamorphic and blur == "BOKEH":
         return ("Bokeh Blur cannot draw an anamorphic aperture ratio (its Bokeh Image is "
                 "square): choose Blur: Convolve or Auto, or use Refocus Last Render")
-    if blades[0] and legacy:
-        return (f"the node group draws {blades[0]} aperture blades on Blender 5.0 or later "
-                f"only (4.x cannot drive the Bokeh Image's angle); use Refocus Last Render")
     return None
 
 

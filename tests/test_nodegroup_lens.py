@@ -149,7 +149,7 @@ def test_the_operator_refuses_a_ratio_bokeh_blur_cannot_draw(tmp_path):
 
     assert shape_refusal([Aperture(0, 0.0, 1.5)], True, "AUTO").startswith(
         "the node group cannot draw an anamorphic aperture ratio; use Refocus Last Render")
-    assert "5.0 or later" in shape_refusal([HEX], True, "AUTO")
+    assert shape_refusal([HEX], True, "AUTO") is None
     assert "blades change" in shape_refusal([HEX, PENTA], False, "AUTO")
     assert shape_refusal([HEX, Aperture(6, 0.1, 1.5)], False, "AUTO") is None
     assert shape_refusal([DISK], True, "BOKEH") is None
@@ -272,20 +272,53 @@ def test_newest_shaped_group_equals_the_numpy_model(tmp_path):
         _assert_equals_the_model(((res, "1"), (res, "2")))
 
 
-def test_legacy_refuses_a_shaped_aperture_by_name(tmp_path):
-    """Blender 4.2: the operator refuses blades and a ratio in one line, builds nothing."""
-    from tests.test_nodegroup import _bpy42_python
+def test_legacy_draws_blades_through_drivers_and_refuses_a_ratio(tmp_path):
+    """Blender 4.2 (Bokeh Blur; the Bokeh Image's angle a property, set by a driver from
+    the camera): 6 blades at 15 deg and 5 at 10 deg with the focus keyed so that the
+    card's slice is in front of the focus at frame 1 and the wall's behind it at frame 2:
+    the group renders as the model does (the 4.x Bokeh Image: ``legacy``), within 4.2's
+    Bokeh Blur rim weights (LEGACY_TOL); the model with the pentagon not turned over is
+    further off; the saved .blend renders the same without the extension. A ratio is
+    refused in one line."""
+    from tests.test_nodegroup import _assert_reopens_identically, _bpy42_python, _model_gap
 
     python = _bpy42_python()
     if python is None:
-        pytest.skip("no Blender 4.2 Python (MPIB_BPY42_PYTHON); the 4.2 check did not run")
-    for ap, words in ((HEX, "6 aperture blades on Blender 5.0 or later"),
-                      (Aperture(0, 0.0, 1.5), "cannot draw an anamorphic aperture ratio")):
+        pytest.skip("no Blender 4.2 Python (MPIB_BPY42_PYTHON); the 4.2 checks did not run")
+    for ap in (HEX, PENTA):
         work = tmp_path / str(ap.blades)
         work.mkdir()
-        res = _session(python, "render", _render_args(work, aperture=[ap.blades, ap.rotation,
-                                                                      ap.ratio]))
-        assert res["operator"] == ["CANCELLED"] and words in res["message"], res["message"]
+        res = _session(python, "render", _render_args(
+            work, frames=[1, 2], keys={"focus": [[1, 6.0], [2, 1.5]]}, fstop=0.8, fill="OFF",
+            aperture=[ap.blades, ap.rotation, ap.ratio], save=str(work / "lens42.blend")))
+        assert res["version"].startswith("4.2") and res["operator"] == ["FINISHED"]
+        # the saved drivers (the Bokeh Images' angles) render frame 2 the same without
+        # the extension
+        _assert_reopens_identically(python, res, work)
+        assert res["spec"]["blades"] == ap.blades and res["spec"]["blur"] == "bokeh"
+        for frame in ("1", "2"):
+            gap, _ = _model_gap(res, frame, legacy=True)
+            print(ap.blades, frame, gap)
+            assert gap < LEGACY_TOL, (ap, frame, gap)
+            if ap.blades % 2:  # the control: the other side's pentagon
+                v = res["frames"][frame]["values"]
+                turned = dict(res, frames={frame: dict(res["frames"][frame], values=dict(
+                    v, **{"Aperture Rotation": v["Aperture Rotation"] + math.pi}))})
+                wrong, _ = _model_gap(turned, frame, legacy=True)
+                print("turned", frame, wrong)
+                assert wrong > 2.5 * LEGACY_TOL, (frame, wrong)
+    work = tmp_path / "ratio"
+    work.mkdir()
+    res = _session(python, "render", _render_args(work, aperture=[0, 0.0, 1.5]))
+    assert res["operator"] == ["CANCELLED"]
+    assert "cannot draw an anamorphic aperture ratio" in res["message"], res["message"]
+
+
+#: 4.2's Bokeh Blur weighs a few rim taps of a polygon differently from the model (as it
+#: does the disk's at some radii; an impulse at 20 px: 12 of 560 taps): measured here 4e-7
+#: (6 blades) and 7.5e-3, 4.3e-3 (5 blades, frames 1, 2; the pentagon not turned over:
+#: 0.037, 0.027).
+LEGACY_TOL = 1e-2
 
 
 def test_regenerating_for_another_aperture_keeps_the_links():

@@ -58,7 +58,8 @@ animate focus and aperture):
    percent of the larger image side, at most 10 %), or on 5.x the Convolve node with an
    anti-aliased disk kernel ``clamp(r + 1/2 - |x|, 0, 1)`` built from nodes (fractional
    radii; FFT, zero padded borders). With a shaped aperture (``GroupSpec.blades``,
-   ``anamorphic``; 5.x) the Bokeh Image draws the camera's polygon and the Convolve
+   ``anamorphic``: 5.x only) the Bokeh Image draws the camera's polygon (4.x: its angle
+   driven from the camera, :func:`add_camera_drivers`) and the Convolve
    kernel is the polygon (or the stretched disk) built from nodes, turned over per slice
    in front of the focus for odd blades (:class:`_ApertureOps`).
 5. The blurred layers of a slab summed (Math nodes), then Eq. 1 over the slabs far to
@@ -365,7 +366,9 @@ KINDS = {
     "bokeh_blur": "(image, bokeh, radius_px): constant-size Bokeh Blur, radius truncated",
     "disk_kernel": "(radius_px,): K x K kernel clamp(r + 1/2 - |x|, 0, 1), param size K (5.x)",
     "bokeh_polygon": "(angle,): Bokeh Image of param flaps (Roundness 0, no catadioptric, "
-                     "no colour shift), Angle linked (5.x)",
+                     "no colour shift), Angle linked (5.x); 4.x: a driver on the angle "
+                     "property, base - rotation (+ pi where the slice at disparity param "
+                     "turn_at >= 0 is in front of the focus)",
     "kernel_coords": "(): (dx, dy) = pixel index - size // 2 on a size x size image, y up, "
                      "param size (5.x); math on them builds a Convolve kernel",
     "convolve": "(image, kernel): Convolve, kernel normalised, zero-padded FFT (5.x)",
@@ -845,12 +848,15 @@ class _ApertureOps:
         if n % 2 == 0:
             if "even" not in self._bokeh:
                 self._bokeh["even"] = g.add("aperture.bokeh", "bokeh_polygon",
-                                            self._bokeh["angle"], flaps=n)
+                                            self._bokeh["angle"], flaps=n,
+                                            base=math.pi / 2 - math.pi / n, turn_at=-1.0)
             return self._bokeh["even"]
         if ("bokeh", i) not in self._made:
             turn = g.math(f"s{i}.bokeh_turn", "MULTIPLY", self.near(i), math.pi)
             angle = g.math(f"s{i}.bokeh_angle", "ADD", self._bokeh["angle"], turn)
-            self._made[("bokeh", i)] = g.add(f"s{i}.bokeh", "bokeh_polygon", angle, flaps=n)
+            self._made[("bokeh", i)] = g.add(f"s{i}.bokeh", "bokeh_polygon", angle, flaps=n,
+                                             base=math.pi / 2 - math.pi / n,
+                                             turn_at=float(self.spec.disparities[i]))
         return self._made[("bokeh", i)]
 
     def _shared(self):
@@ -963,7 +969,8 @@ def bokeh_disk_image(size: int = BOKEH_IMAGE_SIZE) -> np.ndarray:
     return v.astype(_F)
 
 
-def bokeh_polygon_image(flaps: int, angle: float, size: int = BOKEH_IMAGE_SIZE) -> np.ndarray:
+def bokeh_polygon_image(flaps: int, angle: float, size: int = BOKEH_IMAGE_SIZE,
+                        legacy: bool = False) -> np.ndarray:
     """The Bokeh Image of ``flaps`` sides at ``angle`` (radians; Roundness 0, no
     catadioptric, no colour shift), one channel ``(size, size)``, row 0 at the bottom, as
     Blender 5.0 computes it on the CPU (``compositor/cached_resources/intern/
@@ -971,7 +978,11 @@ def bokeh_polygon_image(flaps: int, angle: float, size: int = BOKEH_IMAGE_SIZE) 
     centre at ``pi/2 + e (k - 1) - angle`` (``e = 2 pi / flaps``: clockwise as Angle
     grows, a corner straight up at 0); a texel at ``p`` (centre ``texel + 1/2``) is 0
     outside, ``|F| - |p|`` within a pixel of the edge (``F`` the foot of ``p`` on its
-    edge's line), else 1."""
+    edge's line), else 1. ``legacy``: Blender 4.2-4.5's (``COM_BokehImageOperation.cc``):
+    the same polygon, texels sampled at their corners (``texel - size/2``), corners found
+    by their bearing from +y (``atan2(x, y)``), the edge itself inside."""
+    if legacy:
+        return _bokeh_polygon_image_legacy(int(flaps), angle, size)
     n = int(flaps)
     ext = _F(2.0 * math.pi / n)
     rot = _F(_F(angle) - _F(math.pi / 2.0 - float(ext)))
@@ -995,6 +1006,37 @@ def bokeh_polygon_image(flaps: int, angle: float, size: int = BOKEH_IMAGE_SIZE) 
     edge = np.sqrt(fx * fx + fy * fy).astype(_F)
     dist = np.sqrt(px * px + py * py).astype(_F)
     v = np.where(dist > edge, _F(0), np.where(edge - dist < 1, edge - dist, _F(1)))
+    return v.astype(_F)
+
+
+def _bokeh_polygon_image_legacy(n: int, angle: float, size: int) -> np.ndarray:
+    two_pi = _F(math.pi * 2.0)
+    flap = _F(two_pi / _F(n))
+    add = _F(angle)
+    while add < 0:
+        add = _F(add + two_pi)
+    while add > _F(math.pi):
+        add = _F(add - two_pi)
+    c = _F(size // 2)
+    R = _F(size // 2)
+    t = np.arange(size, dtype=_F)
+    x, y = np.broadcast_to(t[None, :], (size, size)), np.broadcast_to(t[:, None], (size, size))
+    dx, dy = x - c, y - c
+    dist = np.sqrt(dx * dx + dy * dy).astype(_F)
+    bearing = (np.arctan2(dx, dy) + two_pi).astype(_F)
+    k = ((bearing - add) / flap).astype(np.int64).astype(_F)
+
+    def start(j):
+        b = (flap * j + add).astype(_F)
+        return np.sin(b).astype(_F) * R + c, np.cos(b).astype(_F) * R + c
+
+    x1, y1 = start(k)
+    x2, y2 = start(k + _F(1))
+    hx, hy = x2 - x1, y2 - y1
+    u = ((x - x1) * hx + (y - y1) * hy) / (hx * hx + hy * hy)
+    fx, fy = x1 + hx * u - c, y1 + hy * u - c
+    edge = np.sqrt(fx * fx + fy * fy).astype(_F)
+    v = np.where(edge >= dist, np.where(edge - dist < 1, edge - dist, _F(1)), _F(0))
     return v.astype(_F)
 
 
@@ -1260,7 +1302,7 @@ def evaluate(graph: Graph, image: np.ndarray, depth: np.ndarray, values: dict,
         elif k == "bokeh_disk":
             v = None
         elif k == "bokeh_polygon":
-            v = bokeh_polygon_image(op.param("flaps"), float(a[0]))
+            v = bokeh_polygon_image(op.param("flaps"), float(a[0]), legacy=legacy)
         elif k == "kernel_coords":
             if legacy:
                 raise ValueError("the Convolve path exists in Blender 5.x only")
@@ -1301,6 +1343,7 @@ class _Emitter:
         self.legacy = legacy
         self.nodes = {}  # op name -> node
         self.shared = {}
+        self.bokeh_angles = []  # 4.x: [node name, base, turn_at] (a driver sets the angle)
         self.gin = tree.nodes.new("NodeGroupInput")
         self.gin.location = (-400, 0)
         self.column = {}
@@ -1398,11 +1441,15 @@ class _Emitter:
                 self.feed(n.inputs["Size"], op.args[2])
         elif k == "bokeh_polygon":
             n = self.new("bokeh_image", op.name, slot)
-            n.inputs["Flaps"].default_value = int(op.param("flaps"))
+            set_option(n, "Flaps", int(op.param("flaps")))
             set_option(n, "Roundness", 0.0, "rounding")
             set_option(n, "Catadioptric Size", 0.0, "catadioptric")
             set_option(n, "Color Shift", 0.0, "shift")
-            self.feed(n.inputs["Angle"], op.args[0])
+            if L:  # a property: driven from the camera (add_camera_drivers), see bokeh_angles
+                self.bokeh_angles.append([op.name, float(op.param("base")),
+                                          float(op.param("turn_at"))])
+            else:
+                self.feed(n.inputs["Angle"], op.args[0])
         elif k == "kernel_coords":
             n = self._kernel_pixels(op.param("size"))
         elif k == "disk_kernel":
@@ -1519,9 +1566,9 @@ def build_group(graph: Graph, group=None, name: str = GROUP_NAME):
     legacy = is_legacy_api(bpy)
     if graph.spec.blur == "convolve" and legacy:
         raise ValueError("blur 'convolve' needs Blender 5.0 or later (no Convolve node before)")
-    if graph.spec.shaped and legacy:  # the Bokeh Image's Angle is a property, not a socket
-        raise ValueError("the node group draws a shaped aperture (blades, ratio) on Blender "
-                         "5.0 or later only")
+    if graph.spec.anamorphic and legacy:  # no Convolve to stretch the kernels
+        raise ValueError("the node group draws an anamorphic ratio on Blender 5.0 or later "
+                         "only")
     if group is None:
         group = bpy.data.node_groups.new(name, "CompositorNodeTree")
     group.nodes.clear()
@@ -1529,6 +1576,10 @@ def build_group(graph: Graph, group=None, name: str = GROUP_NAME):
     em = _Emitter(group, legacy)
     for op in graph.ops:
         em.emit(op)
+    if em.bokeh_angles:  # 4.x: the Bokeh Images' angles, for add_camera_drivers
+        group["mpib_bokeh_angles"] = json.dumps(em.bokeh_angles)
+    elif "mpib_bokeh_angles" in group:
+        del group["mpib_bokeh_angles"]
     gout = group.nodes.new("NodeGroupOutput")
     gout.location = (em.column.get(0, 0) * 180.0 + 200, 0)
     for out_name, ref in graph.outputs:
@@ -1693,6 +1744,14 @@ def run_on_passes(image: np.ndarray, depth: np.ndarray, graph: Graph, values: di
         tree.links.new(sep.outputs[0], node.inputs["Depth"])
         for name, v in values.items():
             node.inputs[name].default_value = float(v)
+        if group.get("mpib_bokeh_angles"):  # 4.x: the angles the drivers would give
+            import json
+
+            scal = evaluate(graph, np.zeros((1, 1, 4), np.float32), np.ones((1, 1), np.float32),
+                            values, keep=True)["nodes"]
+            for op in graph.ops:
+                if op.kind == "bokeh_polygon":
+                    group.nodes[op.name].angle = float(scal[op.args[0].node])
         tree.links.new(node.outputs["Image"], out.inputs[0])
         r.filepath = os.path.join(d, "group_output.exr")
         t0 = time.perf_counter()
@@ -1748,18 +1807,8 @@ def add_camera_drivers(node, scene, cam_obj=None) -> list[str]:
     if cam_obj is None or cam_obj.type != "CAMERA":
         raise ValueError("the scene has no camera to drive the node from")
     cam = cam_obj.data
-    focus_obj = cam.dof.focus_object
-    if focus_obj is not None:
-        vars_ = []
-        for i, ax in enumerate("xyz"):  # RNA paths index matrix_world column first
-            vars_ += [(f"z{ax}", "OBJECT", cam_obj, f"matrix_world[2][{i}]"),
-                      (f"c{ax}", "OBJECT", cam_obj, f"matrix_world[3][{i}]"),
-                      (f"o{ax}", "OBJECT", focus_obj, f"matrix_world[3][{i}]")]
-        _driver(node.inputs["Focus Distance"],
-                "abs(zx * (cx - ox) + zy * (cy - oy) + zz * (cz - oz)) / "
-                "sqrt(zx * zx + zy * zy + zz * zz)", vars_)
-    else:
-        _driver(node.inputs["Focus Distance"], "z", [("z", "CAMERA", cam, "dof.focus_distance")])
+    focus_expr, focus_vars = _focus_driver(cam_obj)
+    _driver(node.inputs["Focus Distance"], focus_expr, focus_vars)
     _driver(node.inputs["F-Stop"], "n", [("n", "CAMERA", cam, "dof.aperture_fstop")])
     _driver(node.inputs["Focal Length"], "f", [("f", "CAMERA", cam, "lens")])
     res = [("rx", "SCENE", scene, "render.resolution_x"),
@@ -1781,7 +1830,54 @@ def add_camera_drivers(node, scene, cam_obj=None) -> list[str]:
                 [("r", "CAMERA", cam, "dof.aperture_rotation")])
         _driver(node.inputs["Aperture Ratio"], "q", [("q", "CAMERA", cam, "dof.aperture_ratio")])
         driven += [name for name, *_ in SHAPE_INPUTS]
+    _drive_bokeh_angles(node.node_tree, cam, focus_expr, focus_vars)
     return driven
+
+
+def _focus_driver(cam_obj) -> tuple[str, list]:
+    """The focus distance as a simple driver expression and its variables: the focus
+    object's planar depth ``|z . (cam - obj)| / |z|`` (z the camera's view axis, as
+    Blender computes it), else ``dof.focus_distance``."""
+    cam = cam_obj.data
+    focus_obj = cam.dof.focus_object
+    if focus_obj is None:
+        return "z", [("z", "CAMERA", cam, "dof.focus_distance")]
+    vars_ = []
+    for i, ax in enumerate("xyz"):  # RNA paths index matrix_world column first
+        vars_ += [(f"z{ax}", "OBJECT", cam_obj, f"matrix_world[2][{i}]"),
+                  (f"c{ax}", "OBJECT", cam_obj, f"matrix_world[3][{i}]"),
+                  (f"o{ax}", "OBJECT", focus_obj, f"matrix_world[3][{i}]")]
+    return ("abs(zx * (cx - ox) + zy * (cy - oy) + zz * (cz - oz)) / "
+            "sqrt(zx * zx + zy * zy + zz * zz)", vars_)
+
+
+def _drive_bokeh_angles(group, cam, focus_expr: str, focus_vars) -> None:
+    """Blender 4.2-4.5: the Bokeh Image's Angle is a node property, not an input the group
+    can feed, so each of the group's polygon Bokeh Images (``mpib_bokeh_angles``, from
+    :func:`build_group`) gets a driver on it, the same angle the 5.x graph computes:
+    ``base - rotation``, plus ``pi`` for a slice (disparity ``d``) in front of the focus
+    (``d z > 1``, z the focus distance), for odd blades."""
+    import json
+
+    raw = group.get("mpib_bokeh_angles") if group is not None else None
+    for name, base, turn_at in json.loads(raw) if raw else ():
+        expr = f"{base!r} - r"
+        if turn_at >= 0:
+            expr += f" + ({math.pi!r} if {turn_at!r} * ({focus_expr}) > 1 else 0)"
+        bnode = group.nodes[name]
+        bnode.driver_remove("angle")
+        fc = bnode.driver_add("angle")
+        drv = fc.driver
+        drv.type = "SCRIPTED"
+        for vname, id_type, ident, path in [("r", "CAMERA", cam, "dof.aperture_rotation")] + (
+                focus_vars if turn_at >= 0 else []):
+            var = drv.variables.new()
+            var.name = vname
+            var.type = "SINGLE_PROP"
+            var.targets[0].id_type = id_type
+            var.targets[0].id = ident
+            var.targets[0].data_path = path
+        drv.expression = expr
 
 
 def scene_disparity_intervals(scene, cam_obj=None) -> list[tuple[float, float]]:
