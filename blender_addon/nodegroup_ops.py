@@ -70,6 +70,30 @@ def _last_depth(scene):
     return passes.depth if passes.depth.shape == (H, W) else None
 
 
+#: The refusal for a ratio the node group cannot draw (the issue's wording).
+ANAMORPHIC_REFUSAL = ("the node group cannot draw an anamorphic aperture ratio; use Refocus "
+                      "Last Render")
+
+
+def shape_refusal(apertures, legacy: bool, blur: str) -> str | None:
+    """Why the node group cannot draw the camera's aperture over the animation, or None.
+    Blades are fixed when the group is made (one count for every frame); an anamorphic
+    ratio needs Convolve (Bokeh Blur's Bokeh Image is square), so Blender 5.0 or later
+    and Blur Auto or Convolve. Blades work on 4.2-4.5 too (Bokeh Blur; drivers turn the
+    Bokeh Images)."""
+    blades = sorted({a.blades for a in apertures})
+    anamorphic = any(a.ratio != 1.0 for a in apertures)
+    if len(blades) > 1:
+        return (f"the camera's aperture blades change over the animation ({blades}): the "
+                f"node group draws one blade count; use Refocus Animation")
+    if anamorphic and legacy:
+        return ANAMORPHIC_REFUSAL + " (Blender 4.x has no Convolve node to stretch its kernels)"
+    if anamorphic and blur == "BOKEH":
+        return ("Bokeh Blur cannot draw an anamorphic aperture ratio (its Bokeh Image is "
+                "square): choose Blur: Convolve or Auto, or use Refocus Last Render")
+    return None
+
+
 class MPIB_OT_add_refocus_node(bpy.types.Operator):
     """Add (or regenerate) the MPIB Refocus node group between Render Layers and the
     compositor output, driven by the scene camera's focus and aperture"""
@@ -121,6 +145,10 @@ class MPIB_OT_add_refocus_node(bpy.types.Operator):
                     f"use Refocus Last Render (it refocuses non-square pixels)")
             cams = [blender_camera(**c.lens()) for c in frames]
             now = blender_camera(**current.lens())
+            apertures = [c.aperture for c in cams] + [now.aperture]
+            problem = shape_refusal(apertures, legacy, self.blur)
+            if problem:
+                raise calibrate.CalibrationError(problem)
         except (calibrate.CalibrationError, ValueError) as exc:
             if hasattr(scene, "mpib"):
                 scene.mpib.last_message = f"error: {exc}"
@@ -153,11 +181,16 @@ class MPIB_OT_add_refocus_node(bpy.types.Operator):
                             max_radius_px=max(r_max, now.blur_parameter * float(d[-1])),
                             # Auto: Bokeh Blur for the slices that stay small (cheaper)
                             focus_disparity=([c.focus_disparity for c in cams]
-                                             if self.blur == "AUTO" else None))
+                                             if self.blur == "AUTO" else None),
+                            aperture=apertures)
         graph = ng.describe(spec)
         tree = ng.compositor_tree(scene, create=True)
         node = tree.nodes.get(ng.GROUP_NAME)
         group = node.node_tree if node is not None and ng.spec_of(node.node_tree) else None
+        if group is not None:  # the aperture inputs may go (a disk now): their drivers first
+            for name, *_ in ng.SHAPE_INPUTS:
+                if name in node.inputs:
+                    node.inputs[name].driver_remove("default_value")
         group = ng.build_group(graph, group=group)
         wiring = []
         node = ng.install(scene, group, changes=wiring)
@@ -169,6 +202,12 @@ class MPIB_OT_add_refocus_node(bpy.types.Operator):
         msg = (f"MPIB Refocus node: {len(d)} slices from {source}, tolerance {tol:.2g} px, "
                f"fill {self.fill.lower()}, {n_conv + n_bokeh} blurs ({n_conv} Convolve, "
                f"{n_bokeh} Bokeh Blur)")
+        if spec.shaped:
+            ap = now.aperture
+            msg += (f"; aperture {'a disk' if not ap.blades else f'{ap.blades} blades'}"
+                    f"{', ratio driven' if spec.anamorphic else ''}"
+                    f"{', rotation driven' if ap.blades else ''}"
+                    f" (blades are fixed: regenerate the node after changing them)")
         if wiring:
             msg += "; " + "; ".join(wiring)
         if legacy and blur == "bokeh":

@@ -131,6 +131,9 @@ if command == "render":
     cam = sc.camera.data
     cam.dof.focus_distance = args.get("focus", 6.0)
     cam.dof.aperture_fstop = args.get("fstop", 1.0)
+    if args.get("aperture"):  # [blades, rotation (radians), ratio]
+        cam.dof.aperture_blades, cam.dof.aperture_rotation, cam.dof.aperture_ratio = \
+            args["aperture"]
     if args.get("use_dof"):  # an artist who left depth of field on
         cam.dof.use_dof = True
     sys.path.insert(0, args["root"])
@@ -142,10 +145,18 @@ if command == "render":
     out["kept_passes"] = bool(sc.mpib.last_passes and os.path.exists(sc.mpib.last_passes))
     op = dict(max_slices=args.get("max_slices", 8), fill=args.get("fill", "INPAINT"),
               blur=args.get("blur", "AUTO"))
-    out["operator"] = sorted(bpy.ops.mpib.add_refocus_node(**op))
+    try:
+        out["operator"] = sorted(bpy.ops.mpib.add_refocus_node(**op))
+    except RuntimeError:  # an ERROR report (a refusal) raises from bpy.ops
+        out["operator"] = ["CANCELLED"]
     out["message"] = sc.mpib.last_message
     from mpib_validate.runtime.blender import nodegroup as ng
 
+    if out["operator"] != ["FINISHED"]:  # refused: nothing to render
+        blender_addon.unregister()
+        print("RESULT " + json.dumps(out), flush=True)
+        sys.stdout.flush()
+        os._exit(0)
     tree = ng.compositor_tree(sc, create=False)
     node = tree.nodes[ng.GROUP_NAME]
     out["spec"] = json.loads(node.node_tree["mpib_spec"])

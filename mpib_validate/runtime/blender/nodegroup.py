@@ -57,7 +57,11 @@ animate focus and aperture):
    APIs; the radius is truncated to whole pixels, 5.x: Size in pixels, 4.x: Size in
    percent of the larger image side, at most 10 %), or on 5.x the Convolve node with an
    anti-aliased disk kernel ``clamp(r + 1/2 - |x|, 0, 1)`` built from nodes (fractional
-   radii; FFT, zero padded borders).
+   radii; FFT, zero padded borders). With a shaped aperture (``GroupSpec.blades``,
+   ``anamorphic``: 5.x only) the Bokeh Image draws the camera's polygon (4.x: its angle
+   driven from the camera, :func:`add_camera_drivers`) and the Convolve
+   kernel is the polygon (or the stretched disk) built from nodes, turned over per slice
+   in front of the focus for odd blades (:class:`_ApertureOps`).
 5. The blurred layers of a slab summed (Math nodes), then Eq. 1 over the slabs far to
    near with Alpha Over (premultiplied): ``acc <- acc (1 - a_s) + (c_s, a_s)`` with
    ``(c_s, a_s)`` the slab's sum; output colour ``acc_rgb / acc_a`` (clamped >= 0),
@@ -169,6 +173,22 @@ INPUTS = (
      "1: the render's film is transparent; the output keeps the refocused coverage as "
      "alpha (premultiplied). 0: opaque output, colour normalised by the coverage"),
 )
+#: Group inputs of a group made for a shaped aperture (``GroupSpec.blades`` or
+#: ``GroupSpec.anamorphic``), after :data:`INPUTS`; a disk's group has none of them.
+SHAPE_INPUTS = (
+    ("Aperture Rotation", "NodeSocketFloat", 0.0,
+     "The camera's aperture rotation (radians, counter-clockwise on screen, as Cycles)"),
+    ("Aperture Ratio", "NodeSocketFloat", 1.0,
+     "The camera's anamorphic ratio (the aperture's width is divided by it, as Cycles)"),
+)
+
+
+def interface_inputs(spec) -> tuple:
+    """The group inputs of ``spec``: :data:`INPUTS`, plus :data:`SHAPE_INPUTS` when its
+    aperture is not a disk of ratio 1."""
+    return INPUTS + (SHAPE_INPUTS if spec is not None and spec.shaped else ())
+
+
 OUTPUTS = (
     ("Image", "NodeSocketColor", "Refocused image (normalised Eq. 1, alpha 1; with Film "
      "Transparent the premultiplied Eq. 1 and its coverage)"),
@@ -345,6 +365,12 @@ KINDS = {
     "bokeh_disk": "(): round Bokeh Image (512 x 512, Roundness 1)",
     "bokeh_blur": "(image, bokeh, radius_px): constant-size Bokeh Blur, radius truncated",
     "disk_kernel": "(radius_px,): K x K kernel clamp(r + 1/2 - |x|, 0, 1), param size K (5.x)",
+    "bokeh_polygon": "(angle,): Bokeh Image of param flaps (Roundness 0, no catadioptric, "
+                     "no colour shift), Angle linked (5.x); 4.x: a driver on the angle "
+                     "property, base - rotation (+ pi where the slice at disparity param "
+                     "turn_at >= 0 is in front of the focus)",
+    "kernel_coords": "(): (dx, dy) = pixel index - size // 2 on a size x size image, y up, "
+                     "param size (5.x); math on them builds a Convolve kernel",
     "convolve": "(image, kernel): Convolve, kernel normalised, zero-padded FFT (5.x)",
     "inpaint": "(image,): Inpaint, param distance (px)",
     "dilate": "(value,): Dilate/Erode in Step mode, param size n: max over (2n+1)^2",
@@ -377,6 +403,11 @@ class GroupSpec:
         density_px: with the fill, the radius of the window that estimates the share of
             the hidden background each slab covers (0: the Inpaint colour at full alpha;
             see step 3 of the module docstring).
+        blades: the camera's aperture blades the group draws (0: a disk; 3 to 16): fixed
+            when the group is made (a driver cannot add nodes); the rotation is the
+            driven input "Aperture Rotation" (see step 4 of the module docstring).
+        anamorphic: the group stretches its kernels by the driven input "Aperture
+            Ratio" (Convolve only: Bokeh Blur draws a square Bokeh Image).
     """
 
     disparities: tuple
@@ -389,6 +420,13 @@ class GroupSpec:
     slabs: tuple = ()
     bokeh_slices: tuple = ()
     density_px: int = 0
+    blades: int = 0
+    anamorphic: bool = False
+
+    @property
+    def shaped(self) -> bool:
+        """The aperture is not a disk of ratio 1 (the group has :data:`SHAPE_INPUTS`)."""
+        return self.blades > 0 or self.anamorphic
 
     def __post_init__(self):
         d = tuple(float(x) for x in self.disparities)
@@ -420,6 +458,14 @@ class GroupSpec:
         if int(self.density_px) < 0:
             raise ValueError(f"density_px must be >= 0, got {self.density_px}")
         object.__setattr__(self, "density_px", int(self.density_px))
+        b = int(self.blades)
+        if not (b == 0 or 3 <= b <= MAX_BLADES):
+            raise ValueError(f"blades must be 0 (a disk) or 3 to {MAX_BLADES}, got {b}")
+        object.__setattr__(self, "blades", b)
+        object.__setattr__(self, "anamorphic", bool(self.anamorphic))
+        if self.anamorphic and (self.blur == "bokeh" or self.bokeh_slices):
+            raise ValueError("Bokeh Blur cannot draw an anamorphic aperture ratio (its Bokeh "
+                             "Image is square): blur 'convolve' without bokeh_slices")
 
 
 def fill_distances(disparities, blur_parameter: float, cap: int = 256) -> tuple:
@@ -429,6 +475,9 @@ def fill_distances(disparities, blur_parameter: float, cap: int = 256) -> tuple:
     return tuple(int(min(cap, math.ceil(blur_parameter * (d[-1] - x)) + 1)) for x in d)
 
 
+#: Most aperture blades (Blender's ``aperture_blades``; the Bokeh Image takes up to 24).
+MAX_BLADES = 16
+
 #: Largest Convolve kernel half size: the kernel image is cut from the 512 px Bokeh Image.
 KERNEL_CAP = (BOKEH_IMAGE_SIZE - 3) // 2
 
@@ -437,7 +486,7 @@ def make_spec(disparities, blur_parameter: float, *, fill: str = "inpaint",
               blur: str = "bokeh", max_radius_px: float | None = None,
               slab_px: float = SLAB_PX, focus_disparity: float | None = None,
               bokeh_below_px: float = BOKEH_BELOW_PX,
-              density_px: int = DENSITY_PX) -> GroupSpec:
+              density_px: int = DENSITY_PX, aperture=None) -> GroupSpec:
     """The structure for given slices: fill distances by :func:`fill_distances` (each
     slab's fill weighted by its coverage estimated over ``density_px``), and
     (Convolve) a kernel for radii up to ``max_radius_px`` (default ``A d_max``, the
@@ -446,13 +495,25 @@ def make_spec(disparities, blur_parameter: float, *, fill: str = "inpaint",
     FFT pads the image by its own size). With Convolve and ``focus_disparity`` (one, or
     one per frame of an animation), the slices whose radius stays below
     ``bokeh_below_px`` at every such focus use Bokeh Blur (cheaper there); ``slab_px``:
-    :func:`slabs_for`."""
+    :func:`slabs_for`. ``aperture``: the camera's
+    :class:`~mpib_validate.runtime.camera.Aperture` (or one per frame: the same blades;
+    any ratio other than 1 makes the group anamorphic, its kernels sized for the largest
+    extent ``max(1, 1/ratio)``, every slice on Convolve); default a disk."""
     d = np.asarray(disparities, np.float64)
+    aps = [] if aperture is None else (
+        list(aperture) if isinstance(aperture, (list, tuple)) else [aperture])
+    blades = {a.blades for a in aps} or {0}
+    if len(blades) > 1:
+        raise ValueError(f"the aperture's blades change over the frames ({sorted(blades)}): "
+                         f"the node group draws one blade count")
+    anamorphic = any(a.ratio != 1.0 for a in aps)
+    extent = max([a.extent for a in aps] + [1.0])
     if max_radius_px is None:
         max_radius_px = blur_parameter * float(max(d[-1], d[-1] - d[0]))
-    k = min(KERNEL_CAP, int(math.ceil(max_radius_px)) + 1) if blur == "convolve" else 0
+    k = (min(KERNEL_CAP, int(math.ceil(max_radius_px * extent)) + 1) if blur == "convolve"
+         else 0)
     bokeh_slices = ()
-    if blur == "convolve" and focus_disparity is not None:  # one focus or several (frames)
+    if blur == "convolve" and focus_disparity is not None and not anamorphic:  # one focus or several (frames)
         f = np.atleast_1d(np.asarray(focus_disparity, np.float64))
         r = blur_parameter * np.abs(d[:, None] - f[None, :]).max(axis=1)
         bokeh_slices = tuple(int(i) for i in np.flatnonzero(r < bokeh_below_px))
@@ -460,7 +521,8 @@ def make_spec(disparities, blur_parameter: float, *, fill: str = "inpaint",
                      edge="soft" if fill == "inpaint" else "hard",
                      edge_jump=EDGE_JUMP_PX / blur_parameter,
                      slabs=slabs_for(d, blur_parameter, slab_px), bokeh_slices=bokeh_slices,
-                     density_px=density_px if fill == "inpaint" else 0)
+                     density_px=density_px if fill == "inpaint" else 0,
+                     blades=blades.pop(), anamorphic=anamorphic)
 
 
 def spec_from_render(depth: np.ndarray, blur_parameter: float, *,
@@ -469,13 +531,14 @@ def spec_from_render(depth: np.ndarray, blur_parameter: float, *,
                      max_radius_px: float | None = None, slab_px: float = SLAB_PX,
                      focus_disparity: float | None = None,
                      bokeh_below_px: float = BOKEH_BELOW_PX,
-                     density_px: int = DENSITY_PX) -> GroupSpec:
+                     density_px: int = DENSITY_PX, aperture=None) -> GroupSpec:
     """The structure for a render's depth: slices by :func:`place_slices`, the rest by
     :func:`make_spec`."""
     d, _ = place_slices(depth, blur_parameter, tolerance_px, max_slices)
     return make_spec(d, blur_parameter, fill=fill, blur=blur, max_radius_px=max_radius_px,
                      slab_px=slab_px, focus_disparity=focus_disparity,
-                     bokeh_below_px=bokeh_below_px, density_px=density_px)
+                     bokeh_below_px=bokeh_below_px, density_px=density_px,
+                     aperture=aperture)
 
 
 class _Builder:
@@ -663,12 +726,17 @@ def describe(spec: GroupSpec) -> Graph:
             near.append(g.math(f"edge.near.{c}", "MULTIPLY", pos, ring_f))
         near.append(g.math("edge.near.a", "MULTIPLY", ring_f, EDGE_ALPHA))
 
-    bokeh = bokeh_image() if spec.blur == "bokeh" or spec.bokeh_slices else None
+    lens = _ApertureOps(g, spec, radius) if spec.shaped else None
+    bokeh = (bokeh_image() if (spec.blur == "bokeh" or spec.bokeh_slices) and lens is None
+             else None)
     acc = None
 
-    def blur(i, name, layer):  # 4. the disk blur at slice i's radius
+    def blur(i, name, layer):  # 4. the lens blur at slice i's radius
         if spec.blur == "bokeh" or i in spec.bokeh_slices:
-            return g.add(f"{name}.blur", "bokeh_blur", layer, bokeh, radius[i])
+            b = bokeh if lens is None else lens.bokeh(i)
+            return g.add(f"{name}.blur", "bokeh_blur", layer, b, radius[i])
+        if lens is not None:
+            return g.add(f"{name}.blur", "convolve", layer, lens.kernel(i, name))
         kern = g.add(f"{name}.kernel", "disk_kernel", radius[i],
                      size=2 * int(spec.kernel_radius_px) + 3)
         return g.add(f"{name}.blur", "convolve", layer, kern)
@@ -729,6 +797,124 @@ def describe(spec: GroupSpec) -> Graph:
     return Graph(spec, tuple(g.ops), (("Image", out), ("Alpha", cov)))
 
 
+class _ApertureOps:
+    """The lens blur's ops for a shaped aperture (``spec.shaped``; step 4 of the module
+    docstring, the conventions of docs/aperture.md), made once and shared by the slices.
+
+    With ``n = spec.blades``, rotation ``theta`` ("Aperture Rotation") and ratio ``q``
+    ("Aperture Ratio"): Cycles' aperture ``P`` (y up, as on screen) has its corners at
+    ``theta + (2k + 1) pi / n`` on the unit circle, its edge normals at ``theta + 2 pi k /
+    n`` (apothem ``cos(pi / n)``), and its x divided by ``q``. A point behind the focus
+    (slice offset ``d_i - d_f < 0``) spreads into ``P`` scaled by the radius, one in front
+    into ``-P``.
+
+    - Bokeh Blur spreads a point into its Bokeh Image as drawn (y up), whose corners
+      lie at ``pi/2 + 2 pi (k - 1) / n - angle`` (the Bokeh Image turns clockwise with
+      Angle): ``angle = pi/2 - pi/n - theta`` gives ``P``, plus ``pi`` gives ``-P`` (the
+      same polygon for even ``n``: one Bokeh Image for every slice; for odd ``n`` one per
+      slice, its Angle switched by the slice's side of the focus). No ratio (square
+      image).
+    - Convolve correlates (``out(p) = sum_q K(q) I(p + q)``, ``q`` y up), so the kernel
+      of a slice behind the focus is ``-P`` and in front ``P``: with ``(x, y)`` the kernel
+      pixel's offset, ``x`` times ``q``, and ``m_k = x cos t_k + y sin t_k`` (``t_k =
+      theta + 2 pi k / n``), ``K = clamp(r cos(pi/n) + 1/2 - M, 0, 1)``, ``M = max_k m_k``
+      in front, ``max_k (-m_k)`` behind (odd ``n``; the same for even ``n``): the polygon
+      of circumradius ``r`` with a one-pixel ramp across its edges (``1/q`` px wide
+      across x-facing edges when stretched). A disk: ``clamp(r + 1/2 - |(q x, y)|, 0,
+      1)`` (the disk kernel of ratio 1).
+    """
+
+    def __init__(self, g: _Builder, spec: GroupSpec, radius):
+        self.g, self.spec, self.radius = g, spec, radius
+        self.n = spec.blades
+        self._bokeh = {}
+        self._conv = None
+        self._made = {}  # (what, slice) -> Ref: a slice with a layer in two slabs shares them
+
+    def near(self, i):  # 1 for a slice in front of the focus (d_i > d_f), else 0
+        key = ("near", i)
+        if key not in self._made:
+            self._made[key] = self.g.math(f"s{i}.near", "GREATER_THAN", Ref(f"s{i}.offset"), 0.0)
+        return self._made[key]
+
+    def bokeh(self, i):
+        g, n = self.g, self.n
+        if n == 0:
+            raise ValueError("Bokeh Blur draws no anamorphic disk (the Bokeh Image is square)")
+        if "angle" not in self._bokeh:
+            self._bokeh["angle"] = g.math("aperture.bokeh_angle", "SUBTRACT",
+                                          math.pi / 2 - math.pi / n,
+                                          GroupIn("Aperture Rotation"))
+        if n % 2 == 0:
+            if "even" not in self._bokeh:
+                self._bokeh["even"] = g.add("aperture.bokeh", "bokeh_polygon",
+                                            self._bokeh["angle"], flaps=n,
+                                            base=math.pi / 2 - math.pi / n, turn_at=-1.0)
+            return self._bokeh["even"]
+        if ("bokeh", i) not in self._made:
+            turn = g.math(f"s{i}.bokeh_turn", "MULTIPLY", self.near(i), math.pi)
+            angle = g.math(f"s{i}.bokeh_angle", "ADD", self._bokeh["angle"], turn)
+            self._made[("bokeh", i)] = g.add(f"s{i}.bokeh", "bokeh_polygon", angle, flaps=n,
+                                             base=math.pi / 2 - math.pi / n,
+                                             turn_at=float(self.spec.disparities[i]))
+        return self._made[("bokeh", i)]
+
+    def _shared(self):
+        if self._conv is not None:
+            return self._conv
+        g, n, spec = self.g, self.n, self.spec
+        size = 2 * int(spec.kernel_radius_px) + 3
+        g.add("kernel.pixel", "kernel_coords", size=size)
+        c = float(size // 2)
+        x = g.math("kernel.x", "SUBTRACT", Ref("kernel.pixel", 0), c)
+        y = g.math("kernel.y", "SUBTRACT", Ref("kernel.pixel", 1), c)
+        if spec.anamorphic:
+            x = g.math("kernel.x_ratio", "MULTIPLY", x, GroupIn("Aperture Ratio"))
+        if n == 0:
+            r2 = g.math("kernel.r2", "ADD", g.math("kernel.x2", "MULTIPLY", x, x),
+                        g.math("kernel.y2", "MULTIPLY", y, y))
+            self._conv = {"distance": g.math("kernel.distance", "SQRT", r2)}
+            return self._conv
+        proj = []
+        for k in range(n):
+            t = g.math(f"kernel.t{k}", "ADD", GroupIn("Aperture Rotation"), 2 * math.pi * k / n)
+            cx = g.math(f"kernel.x_cos{k}", "MULTIPLY", x, g.math(f"kernel.cos{k}", "COSINE", t))
+            sy = g.math(f"kernel.y_sin{k}", "MULTIPLY", y, g.math(f"kernel.sin{k}", "SINE", t))
+            proj.append(g.math(f"kernel.m{k}", "ADD", cx, sy))
+        hi, lo = proj[0], proj[0]
+        for k in range(1, n):
+            hi = g.math(f"kernel.max{k}", "MAXIMUM", hi, proj[k])
+            if n % 2:
+                lo = g.math(f"kernel.min{k}", "MINIMUM", lo, proj[k])
+        self._conv = {"front": hi}
+        if n % 2:
+            back = g.math("kernel.back", "MULTIPLY", lo, -1.0)
+            self._conv.update(back=back, gap=g.math("kernel.gap", "SUBTRACT", hi, back))
+        return self._conv
+
+    def kernel(self, i, name=None):
+        key = ("kernel", i)
+        if key in self._made:
+            return self._made[key]
+        g, n = self.g, self.n
+        sh = self._shared()
+        r = self.radius[i]
+        if n == 0:
+            rp = g.math(f"s{i}.kernel.r+0.5", "ADD", r, 0.5)
+            k = g.math(f"s{i}.kernel", "SUBTRACT", rp, sh["distance"], clamp=True)
+        else:
+            if n % 2:  # behind the focus -P, in front P
+                pick = g.math(f"s{i}.kernel.pick", "MULTIPLY", sh["gap"], self.near(i))
+                m = g.math(f"s{i}.kernel.m", "ADD", sh["back"], pick)
+            else:
+                m = sh["front"]
+            a = g.math(f"s{i}.kernel.apothem", "MULTIPLY", r, math.cos(math.pi / n))
+            edge = g.math(f"s{i}.kernel.edge", "ADD", a, 0.5)
+            k = g.math(f"s{i}.kernel", "SUBTRACT", edge, m, clamp=True)
+        self._made[key] = k
+        return k
+
+
 # --------------------------------------------------------------------------------------
 # The numpy model of the same nodes
 
@@ -761,6 +947,10 @@ def _math(op: str, a, b, clamp: bool):
             r = np.where(a > 0, np.sqrt(np.maximum(a, 0)), _F(0))
         elif op == "FLOOR":
             r = np.floor(a)
+        elif op == "SINE":
+            r = np.sin(a)
+        elif op == "COSINE":
+            r = np.cos(a)
         else:
             raise ValueError(f"math op {op!r} is not modelled")
     r = np.asarray(r, _F)
@@ -776,6 +966,77 @@ def bokeh_disk_image(size: int = BOKEH_IMAGE_SIZE) -> np.ndarray:
     t = np.arange(size, dtype=_F) + _F(0.5) - R
     dist = np.sqrt(t[None, :] ** 2 + t[:, None] ** 2).astype(_F)
     v = np.where(dist > R, _F(0), np.where(R - dist < 1, R - dist, _F(1)))
+    return v.astype(_F)
+
+
+def bokeh_polygon_image(flaps: int, angle: float, size: int = BOKEH_IMAGE_SIZE,
+                        legacy: bool = False) -> np.ndarray:
+    """The Bokeh Image of ``flaps`` sides at ``angle`` (radians; Roundness 0, no
+    catadioptric, no colour shift), one channel ``(size, size)``, row 0 at the bottom, as
+    Blender 5.0 computes it on the CPU (``compositor/cached_resources/intern/
+    bokeh_kernel.cc``, float32): corners on the circle of radius ``size/2`` about the
+    centre at ``pi/2 + e (k - 1) - angle`` (``e = 2 pi / flaps``: clockwise as Angle
+    grows, a corner straight up at 0); a texel at ``p`` (centre ``texel + 1/2``) is 0
+    outside, ``|F| - |p|`` within a pixel of the edge (``F`` the foot of ``p`` on its
+    edge's line), else 1. ``legacy``: Blender 4.2-4.5's (``COM_BokehImageOperation.cc``):
+    the same polygon, texels sampled at their corners (``texel - size/2``), corners found
+    by their bearing from +y (``atan2(x, y)``), the edge itself inside."""
+    if legacy:
+        return _bokeh_polygon_image_legacy(int(flaps), angle, size)
+    n = int(flaps)
+    ext = _F(2.0 * math.pi / n)
+    rot = _F(_F(angle) - _F(math.pi / 2.0 - float(ext)))
+    R = _F(size / 2.0)
+    t = np.arange(size, dtype=_F) + _F(0.5) - R
+    px, py = np.broadcast_to(t[None, :], (size, size)), np.broadcast_to(t[:, None], (size, size))
+    two_pi = _F(2.0 * math.pi)
+    a = (np.arctan2(py, px) + rot).astype(_F)
+    a = (a - two_pi * np.floor(a / two_pi)).astype(_F)
+    k = (a / ext).astype(np.int64).astype(_F)
+
+    def vertex(j):
+        ang = (ext * j - rot).astype(_F)
+        return np.cos(ang).astype(_F) * R, np.sin(ang).astype(_F) * R
+
+    x1, y1 = vertex(k)
+    x2, y2 = vertex(k + _F(1))
+    lx, ly = x2 - x1, y2 - y1
+    par = ((px - x1) * lx + (py - y1) * ly) / (lx * lx + ly * ly)
+    fx, fy = x1 + lx * par, y1 + ly * par
+    edge = np.sqrt(fx * fx + fy * fy).astype(_F)
+    dist = np.sqrt(px * px + py * py).astype(_F)
+    v = np.where(dist > edge, _F(0), np.where(edge - dist < 1, edge - dist, _F(1)))
+    return v.astype(_F)
+
+
+def _bokeh_polygon_image_legacy(n: int, angle: float, size: int) -> np.ndarray:
+    two_pi = _F(math.pi * 2.0)
+    flap = _F(two_pi / _F(n))
+    add = _F(angle)
+    while add < 0:
+        add = _F(add + two_pi)
+    while add > _F(math.pi):
+        add = _F(add - two_pi)
+    c = _F(size // 2)
+    R = _F(size // 2)
+    t = np.arange(size, dtype=_F)
+    x, y = np.broadcast_to(t[None, :], (size, size)), np.broadcast_to(t[:, None], (size, size))
+    dx, dy = x - c, y - c
+    dist = np.sqrt(dx * dx + dy * dy).astype(_F)
+    bearing = (np.arctan2(dx, dy) + two_pi).astype(_F)
+    k = ((bearing - add) / flap).astype(np.int64).astype(_F)
+
+    def start(j):
+        b = (flap * j + add).astype(_F)
+        return np.sin(b).astype(_F) * R + c, np.cos(b).astype(_F) * R + c
+
+    x1, y1 = start(k)
+    x2, y2 = start(k + _F(1))
+    hx, hy = x2 - x1, y2 - y1
+    u = ((x - x1) * hx + (y - y1) * hy) / (hx * hx + hy * hy)
+    fx, fy = x1 + hx * u - c, y1 + hy * u - c
+    edge = np.sqrt(fx * fx + fy * fy).astype(_F)
+    v = np.where(edge >= dist, np.where(edge - dist < 1, edge - dist, _F(1)), _F(0))
     return v.astype(_F)
 
 
@@ -798,11 +1059,13 @@ def _sample_bilinear_extended(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> 
     return (top * (1 - fy) + bot * fy).astype(_F)
 
 
-def bokeh_blur_kernel(radius: int) -> np.ndarray:
+def bokeh_blur_kernel(radius: int, bokeh: np.ndarray | None = None) -> np.ndarray:
     """The weights Bokeh Blur uses at integer ``radius`` with the round Bokeh Image, as a
     correlation kernel ``(2 s + 1)^2`` over offsets (rows top-down): tap ``t`` samples
     the Bokeh Image bilinearly at ``1 - (t + 1/2) / (2 s + 1)`` (a disk of radius about
-    ``s + 1/2``). Blender 5.0 and 4.2 (measured with impulses) weigh alike."""
+    ``s + 1/2``). Blender 5.0 and 4.2 (measured with impulses) weigh alike. ``bokeh``:
+    another Bokeh Image (rows bottom-up; default the round one): a point spreads into it
+    as drawn (the weight of offset ``o``, y up, is the image at ``-o``)."""
     s = int(radius)
     if s <= 0:
         return np.ones((1, 1), _F)
@@ -810,7 +1073,8 @@ def bokeh_blur_kernel(radius: int) -> np.ndarray:
     t = np.arange(n, dtype=_F)
     c = _F(1) - (t + _F(0.5)) / _F(n)
     # kernel texel (tx, ty) weighs offset (tx - s, ty - s) in Blender's axes (y up)
-    k_up = _sample_bilinear_extended(bokeh_disk_image(), c[None, :], c[:, None])
+    img = bokeh_disk_image() if bokeh is None else np.asarray(bokeh, _F)
+    k_up = _sample_bilinear_extended(img, c[None, :], c[:, None])
     return np.ascontiguousarray(k_up[::-1])
 
 
@@ -824,7 +1088,8 @@ def legacy_pixel_size(radius, largest_side) -> int:
     return int(_F(pct) * M / _F(100))
 
 
-def _bokeh_blur(image: np.ndarray, radius, legacy: bool, largest_side=None) -> np.ndarray:
+def _bokeh_blur(image: np.ndarray, radius, legacy: bool, largest_side=None,
+                bokeh: np.ndarray | None = None) -> np.ndarray:
     """Constant-size Bokeh Blur: ``sum_k w_k I(p + k) / sum_k w_k`` over
     :func:`bokeh_blur_kernel`, borders extended (both APIs; 4.x converts the radius to
     and from a percentage of the larger side, :func:`legacy_pixel_size`)."""
@@ -836,7 +1101,7 @@ def _bokeh_blur(image: np.ndarray, radius, legacy: bool, largest_side=None) -> n
         s = int(np.floor(np.asarray(radius, _F)))  # the node truncates (radius >= 0)
     if s <= 0:
         return image.astype(_F)
-    kern = bokeh_blur_kernel(s).astype(np.float64)
+    kern = bokeh_blur_kernel(s, bokeh).astype(np.float64)
     img = image.astype(np.float64)
     num = np.stack([ndimage.correlate(img[..., c], kern, mode="nearest")
                     for c in range(img.shape[2])], axis=-1)
@@ -852,11 +1117,22 @@ def disk_kernel(radius, size: int) -> np.ndarray:
     return np.clip((r + _F(0.5)) - dist, _F(0), _F(1)).astype(_F)
 
 
+def kernel_pixels(size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Image Coordinates' pixel indices ``(x, y)`` of a ``size x size`` image, as arrays
+    indexed ``[y, x]`` with row 0 at the bottom (y up)."""
+    t = np.arange(size, dtype=_F)
+    return (np.broadcast_to(t[None, :], (size, size)).copy(),
+            np.broadcast_to(t[:, None], (size, size)).copy())
+
+
 def _convolve(image: np.ndarray, kernel: np.ndarray) -> np.ndarray:
-    """Convolve (5.x): zero-padded convolution with the kernel divided by its sum."""
+    """Convolve (5.x): zero-padded, the kernel divided by its sum, as a correlation
+    ``out(p) = sum_q K(q) I(p + q)`` with ``q`` y up (measured with an asymmetric kernel):
+    ``kernel`` indexed ``[y, x]`` with row 0 at the bottom (as :func:`kernel_pixels`), so
+    that, for the convolution of the top-down image, its columns are reversed."""
     from scipy.signal import fftconvolve
 
-    k = kernel.astype(np.float64)
+    k = np.ascontiguousarray(kernel[:, ::-1]).astype(np.float64)
     s = k.sum()
     k = k / (s if s != 0 else 1.0)
     out = np.stack([fftconvolve(image[..., c].astype(np.float64), k, mode="same")
@@ -996,7 +1272,7 @@ def evaluate(graph: Graph, image: np.ndarray, depth: np.ndarray, values: dict,
     Returns:
         ``{"Image": (H, W, 4), "Alpha": (H, W)}`` float32 (plus ``"nodes"``).
     """
-    inputs = {name: default for name, _, default, _ in INPUTS}
+    inputs = {name: default for name, _, default, _ in interface_inputs(graph.spec)}
     inputs.update(values)
     inputs["Image"] = np.asarray(image, _F)
     inputs["Depth"] = np.asarray(depth, _F)
@@ -1025,9 +1301,15 @@ def evaluate(graph: Graph, image: np.ndarray, depth: np.ndarray, values: dict,
             v = (fg + bg * (1 - np.clip(fg[..., 3:4], 0, 1))).astype(_F)
         elif k == "bokeh_disk":
             v = None
+        elif k == "bokeh_polygon":
+            v = bokeh_polygon_image(op.param("flaps"), float(a[0]), legacy=legacy)
+        elif k == "kernel_coords":
+            if legacy:
+                raise ValueError("the Convolve path exists in Blender 5.x only")
+            v = kernel_pixels(op.param("size"))
         elif k == "bokeh_blur":
             v = _bokeh_blur(a[0], a[2], legacy, max(float(inputs["Resolution X"]),
-                                                    float(inputs["Resolution Y"])))
+                                                    float(inputs["Resolution Y"])), a[1])
         elif k == "disk_kernel":
             if legacy:
                 raise ValueError("the Convolve path exists in Blender 5.x only")
@@ -1061,6 +1343,7 @@ class _Emitter:
         self.legacy = legacy
         self.nodes = {}  # op name -> node
         self.shared = {}
+        self.bokeh_angles = []  # 4.x: [node name, base, turn_at] (a driver sets the angle)
         self.gin = tree.nodes.new("NodeGroupInput")
         self.gin.location = (-400, 0)
         self.column = {}
@@ -1156,6 +1439,19 @@ class _Emitter:
                 self.tree.links.new(pct.outputs[0], n.inputs["Size"])
             else:
                 self.feed(n.inputs["Size"], op.args[2])
+        elif k == "bokeh_polygon":
+            n = self.new("bokeh_image", op.name, slot)
+            set_option(n, "Flaps", int(op.param("flaps")))
+            set_option(n, "Roundness", 0.0, "rounding")
+            set_option(n, "Catadioptric Size", 0.0, "catadioptric")
+            set_option(n, "Color Shift", 0.0, "shift")
+            if L:  # a property: driven from the camera (add_camera_drivers), see bokeh_angles
+                self.bokeh_angles.append([op.name, float(op.param("base")),
+                                          float(op.param("turn_at"))])
+            else:
+                self.feed(n.inputs["Angle"], op.args[0])
+        elif k == "kernel_coords":
+            n = self._kernel_pixels(op.param("size"))
         elif k == "disk_kernel":
             dist = self._kernel_distance(op.param("size"))
             rp = self.math(op.name + ".r+0.5", "ADD", op.args[0], 0.5, slot=slot)
@@ -1183,10 +1479,10 @@ class _Emitter:
             raise ValueError(f"unknown node kind {k!r}")
         self.nodes[op.name] = n
 
-    def _kernel_distance(self, size: int):
-        """|x - c| on a size x size image, shared by every slice's kernel (5.x): the Bokeh
+    def _kernel_pixels(self, size: int):
+        """Separate XYZ of the pixel indices (x, y) of a size x size image (5.x): the Bokeh
         Image cropped to ``size`` gives the domain, Image Coordinates the pixel indices."""
-        key = ("distance", size)
+        key = ("pixels", size)
         if key in self.shared:
             return self.shared[key]
         if not 1 <= size <= BOKEH_IMAGE_SIZE:
@@ -1201,6 +1497,15 @@ class _Emitter:
         self.tree.links.new(crop.outputs[0], coords.inputs["Image"])
         xyz = self.new("separate_xyz", "kernel_xy")
         self.tree.links.new(coords.outputs["Pixel"], xyz.inputs[0])
+        self.shared[key] = xyz
+        return xyz
+
+    def _kernel_distance(self, size: int):
+        """|x - c| on a size x size image, shared by every slice's disk kernel (5.x)."""
+        key = ("distance", size)
+        if key in self.shared:
+            return self.shared[key]
+        xyz = self._kernel_pixels(size)
         c = float(size // 2)
         dx = self.math("kernel_dx", "SUBTRACT", xyz.outputs[0], c)
         dy = self.math("kernel_dy", "SUBTRACT", xyz.outputs[1], c)
@@ -1212,19 +1517,37 @@ class _Emitter:
         return dist
 
 
-def _ensure_interface(group) -> None:
-    """Give ``group`` exactly the sockets of :data:`INPUTS` and :data:`OUTPUTS`; kept as
-    they are when they already match (so links, values and drivers on group nodes stay)."""
-    want = [(n, "INPUT", t) for n, t, _, _ in INPUTS] + [(n, "OUTPUT", t) for n, t, _ in OUTPUTS]
+def _new_input(group, name, stype, default, desc):
+    s = group.interface.new_socket(name, in_out="INPUT", socket_type=stype, description=desc)
+    s.default_value = default
+    if stype == "NodeSocketFloat" and name not in ("Depth", "Aperture Rotation"):
+        s.min_value = 0.0
+    return s
+
+
+def _ensure_interface(group, spec=None) -> None:
+    """Give ``group`` exactly the sockets of :func:`interface_inputs` and :data:`OUTPUTS`;
+    kept as they are when they already match (so links, values and drivers on group
+    nodes stay). A group that differs only by the aperture inputs (:data:`SHAPE_INPUTS`:
+    the camera's blades or ratio changed) gets them added or removed, the other sockets
+    (and the links to them) kept."""
+    inputs = interface_inputs(spec)
+    want = [(n, "INPUT", t) for n, t, _, _ in inputs] + [(n, "OUTPUT", t) for n, t, _ in OUTPUTS]
     have = [(s.name, s.in_out, s.socket_type) for s in _interface_sockets(group)]
     if sorted(have) == sorted(want):
         return
+    shape = {(n, "INPUT", t) for n, t, _, _ in SHAPE_INPUTS}
+    if sorted(set(have) - shape) == sorted(set(want) - shape) and len(set(have)) == len(have):
+        for item in _interface_sockets(group):
+            if (item.name, item.in_out, item.socket_type) in shape - set(want):
+                group.interface.remove(item)
+        for name, stype, default, desc in inputs:
+            if (name, "INPUT", stype) in shape - set(have):
+                _new_input(group, name, stype, default, desc)
+        return
     group.interface.clear()
-    for name, stype, default, desc in INPUTS:
-        s = group.interface.new_socket(name, in_out="INPUT", socket_type=stype, description=desc)
-        s.default_value = default
-        if stype == "NodeSocketFloat" and name not in ("Depth",):
-            s.min_value = 0.0
+    for name, stype, default, desc in inputs:
+        _new_input(group, name, stype, default, desc)
     for name, stype, desc in OUTPUTS:
         group.interface.new_socket(name, in_out="OUTPUT", socket_type=stype, description=desc)
 
@@ -1243,13 +1566,20 @@ def build_group(graph: Graph, group=None, name: str = GROUP_NAME):
     legacy = is_legacy_api(bpy)
     if graph.spec.blur == "convolve" and legacy:
         raise ValueError("blur 'convolve' needs Blender 5.0 or later (no Convolve node before)")
+    if graph.spec.anamorphic and legacy:  # no Convolve to stretch the kernels
+        raise ValueError("the node group draws an anamorphic ratio on Blender 5.0 or later "
+                         "only")
     if group is None:
         group = bpy.data.node_groups.new(name, "CompositorNodeTree")
     group.nodes.clear()
-    _ensure_interface(group)
+    _ensure_interface(group, graph.spec)
     em = _Emitter(group, legacy)
     for op in graph.ops:
         em.emit(op)
+    if em.bokeh_angles:  # 4.x: the Bokeh Images' angles, for add_camera_drivers
+        group["mpib_bokeh_angles"] = json.dumps(em.bokeh_angles)
+    elif "mpib_bokeh_angles" in group:
+        del group["mpib_bokeh_angles"]
     gout = group.nodes.new("NodeGroupOutput")
     gout.location = (em.column.get(0, 0) * 180.0 + 200, 0)
     for out_name, ref in graph.outputs:
@@ -1261,7 +1591,9 @@ def build_group(graph: Graph, group=None, name: str = GROUP_NAME):
                                      "edge": s.edge, "edge_jump": s.edge_jump,
                                      "slabs": list(s.slabs),
                                      "bokeh_slices": list(s.bokeh_slices),
-                                     "density_px": s.density_px})
+                                     "density_px": s.density_px,
+                                     **({"blades": s.blades, "anamorphic": s.anamorphic}
+                                        if s.shaped else {})})
     return group
 
 
@@ -1276,7 +1608,8 @@ def spec_of(group) -> GroupSpec | None:
     return GroupSpec(tuple(d["disparities"]), d["fill"], d["blur"], tuple(d["fill_px"]),
                      int(d["kernel_radius_px"]), d.get("edge", "hard"), d.get("edge_jump", 0.0),
                      tuple(d.get("slabs", ())), tuple(d.get("bokeh_slices", ())),
-                     int(d.get("density_px", 0)))
+                     int(d.get("density_px", 0)), int(d.get("blades", 0)),
+                     bool(d.get("anamorphic", False)))
 
 
 def install(scene, group, node_name: str = GROUP_NAME, changes: list | None = None):
@@ -1411,6 +1744,14 @@ def run_on_passes(image: np.ndarray, depth: np.ndarray, graph: Graph, values: di
         tree.links.new(sep.outputs[0], node.inputs["Depth"])
         for name, v in values.items():
             node.inputs[name].default_value = float(v)
+        if group.get("mpib_bokeh_angles"):  # 4.x: the angles the drivers would give
+            import json
+
+            scal = evaluate(graph, np.zeros((1, 1, 4), np.float32), np.ones((1, 1), np.float32),
+                            values, keep=True)["nodes"]
+            for op in graph.ops:
+                if op.kind == "bokeh_polygon":
+                    group.nodes[op.name].angle = float(scal[op.args[0].node])
         tree.links.new(node.outputs["Image"], out.inputs[0])
         r.filepath = os.path.join(d, "group_output.exr")
         t0 = time.perf_counter()
@@ -1466,18 +1807,8 @@ def add_camera_drivers(node, scene, cam_obj=None) -> list[str]:
     if cam_obj is None or cam_obj.type != "CAMERA":
         raise ValueError("the scene has no camera to drive the node from")
     cam = cam_obj.data
-    focus_obj = cam.dof.focus_object
-    if focus_obj is not None:
-        vars_ = []
-        for i, ax in enumerate("xyz"):  # RNA paths index matrix_world column first
-            vars_ += [(f"z{ax}", "OBJECT", cam_obj, f"matrix_world[2][{i}]"),
-                      (f"c{ax}", "OBJECT", cam_obj, f"matrix_world[3][{i}]"),
-                      (f"o{ax}", "OBJECT", focus_obj, f"matrix_world[3][{i}]")]
-        _driver(node.inputs["Focus Distance"],
-                "abs(zx * (cx - ox) + zy * (cy - oy) + zz * (cz - oz)) / "
-                "sqrt(zx * zx + zy * zy + zz * zz)", vars_)
-    else:
-        _driver(node.inputs["Focus Distance"], "z", [("z", "CAMERA", cam, "dof.focus_distance")])
+    focus_expr, focus_vars = _focus_driver(cam_obj)
+    _driver(node.inputs["Focus Distance"], focus_expr, focus_vars)
     _driver(node.inputs["F-Stop"], "n", [("n", "CAMERA", cam, "dof.aperture_fstop")])
     _driver(node.inputs["Focal Length"], "f", [("f", "CAMERA", cam, "lens")])
     res = [("rx", "SCENE", scene, "render.resolution_x"),
@@ -1493,7 +1824,60 @@ def add_camera_drivers(node, scene, cam_obj=None) -> list[str]:
     node.inputs["Unit Scale"].driver_remove("default_value")
     node.inputs["Unit Scale"].default_value = 1.0
     _driver(node.inputs["Film Transparent"], "t", [("t", "SCENE", scene, "render.film_transparent")])
-    return list(DRIVEN_INPUTS)
+    driven = list(DRIVEN_INPUTS)
+    if "Aperture Rotation" in node.inputs:  # a group made for a shaped aperture
+        _driver(node.inputs["Aperture Rotation"], "r",
+                [("r", "CAMERA", cam, "dof.aperture_rotation")])
+        _driver(node.inputs["Aperture Ratio"], "q", [("q", "CAMERA", cam, "dof.aperture_ratio")])
+        driven += [name for name, *_ in SHAPE_INPUTS]
+    _drive_bokeh_angles(node.node_tree, cam, focus_expr, focus_vars)
+    return driven
+
+
+def _focus_driver(cam_obj) -> tuple[str, list]:
+    """The focus distance as a simple driver expression and its variables: the focus
+    object's planar depth ``|z . (cam - obj)| / |z|`` (z the camera's view axis, as
+    Blender computes it), else ``dof.focus_distance``."""
+    cam = cam_obj.data
+    focus_obj = cam.dof.focus_object
+    if focus_obj is None:
+        return "z", [("z", "CAMERA", cam, "dof.focus_distance")]
+    vars_ = []
+    for i, ax in enumerate("xyz"):  # RNA paths index matrix_world column first
+        vars_ += [(f"z{ax}", "OBJECT", cam_obj, f"matrix_world[2][{i}]"),
+                  (f"c{ax}", "OBJECT", cam_obj, f"matrix_world[3][{i}]"),
+                  (f"o{ax}", "OBJECT", focus_obj, f"matrix_world[3][{i}]")]
+    return ("abs(zx * (cx - ox) + zy * (cy - oy) + zz * (cz - oz)) / "
+            "sqrt(zx * zx + zy * zy + zz * zz)", vars_)
+
+
+def _drive_bokeh_angles(group, cam, focus_expr: str, focus_vars) -> None:
+    """Blender 4.2-4.5: the Bokeh Image's Angle is a node property, not an input the group
+    can feed, so each of the group's polygon Bokeh Images (``mpib_bokeh_angles``, from
+    :func:`build_group`) gets a driver on it, the same angle the 5.x graph computes:
+    ``base - rotation``, plus ``pi`` for a slice (disparity ``d``) in front of the focus
+    (``d z > 1``, z the focus distance), for odd blades."""
+    import json
+
+    raw = group.get("mpib_bokeh_angles") if group is not None else None
+    for name, base, turn_at in json.loads(raw) if raw else ():
+        expr = f"{base!r} - r"
+        if turn_at >= 0:
+            expr += f" + ({math.pi!r} if {turn_at!r} * ({focus_expr}) > 1 else 0)"
+        bnode = group.nodes[name]
+        bnode.driver_remove("angle")
+        fc = bnode.driver_add("angle")
+        drv = fc.driver
+        drv.type = "SCRIPTED"
+        for vname, id_type, ident, path in [("r", "CAMERA", cam, "dof.aperture_rotation")] + (
+                focus_vars if turn_at >= 0 else []):
+            var = drv.variables.new()
+            var.name = vname
+            var.type = "SINGLE_PROP"
+            var.targets[0].id_type = id_type
+            var.targets[0].id = ident
+            var.targets[0].data_path = path
+        drv.expression = expr
 
 
 def scene_disparity_intervals(scene, cam_obj=None) -> list[tuple[float, float]]:
