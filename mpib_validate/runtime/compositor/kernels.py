@@ -195,14 +195,15 @@ _cache: "collections.OrderedDict" = collections.OrderedDict()
 _cache_lock = threading.Lock()  # callers may be on several threads
 
 
-def _disk_cached(radius_q: int, cell) -> np.ndarray:
-    key = (radius_q, cell)
+def _cached(key, make) -> np.ndarray:
+    """The kernel of ``key`` from the LRU cache, else ``make()`` (read-only), kept while
+    the cache stays within :data:`KERNEL_CACHE_BYTES`."""
     with _cache_lock:
         k = _cache.get(key)
         if k is not None:
             _cache.move_to_end(key)
             return k
-    k = _disk_kernel(math.copysign(abs(radius_q) / 1024.0, radius_q), cell)
+    k = make()
     k.setflags(write=False)
     if k.nbytes <= KERNEL_CACHE_BYTES:
         with _cache_lock:
@@ -212,6 +213,12 @@ def _disk_cached(radius_q: int, cell) -> np.ndarray:
                 _, old = _cache.popitem(last=False)
                 total -= old.nbytes
     return k
+
+
+def _disk_cached(radius_q: int, cell) -> np.ndarray:
+    key = (radius_q, cell)
+    return _cached(key, lambda: _disk_kernel(math.copysign(abs(radius_q) / 1024.0, radius_q),
+                                             cell))
 
 
 def _disk_kernel(rho: float, cell) -> np.ndarray:
@@ -616,21 +623,8 @@ def aperture_kernel(rho: float, aperture, cell: tuple[int, int, int] | None = No
         q = abs(q)
     key = ("shape", q, aperture.blades, aperture.rotation, aperture.ratio,
            float(axes[0]), float(axes[1]), cell)
-    with _cache_lock:
-        k = _cache.get(key)
-        if k is not None:
-            _cache.move_to_end(key)
-            return k
-    k = _shape_kernel(math.copysign(abs(q) / 1024.0, q), aperture, cell, axes)
-    k.setflags(write=False)
-    if k.nbytes <= KERNEL_CACHE_BYTES:
-        with _cache_lock:
-            _cache[key] = k
-            total = sum(v.nbytes for v in _cache.values())
-            while total > KERNEL_CACHE_BYTES:
-                _, old = _cache.popitem(last=False)
-                total -= old.nbytes
-    return k
+    return _cached(key, lambda: _shape_kernel(math.copysign(abs(q) / 1024.0, q), aperture,
+                                              cell, axes))
 
 
 def _shape_points(iu, iv, m: int, rho: float, aperture, axes) -> np.ndarray:
