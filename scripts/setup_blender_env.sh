@@ -47,7 +47,7 @@ trap 'rm -f "$CONS"' EXIT
 grep -vE '^(bpy|numpy)==' constraints.txt >"$CONS"
 echo "numpy==$NUMPY" >>"$CONS"
 "${PIP[@]}" -c "$CONS" "bpy==$BPY" "numpy==$NUMPY"
-"${PIP[@]}" -c "$CONS" -e ".[test,generate,metrics,cli]"
+"${PIP[@]}" -c "$CONS" -e ".[test,generate,metrics,cli,report]"
 "$VENV/bin/python" -c "import bpy, numpy; assert bpy.app.version_string.startswith('${BPY%.*}'), bpy.app.version_string; print('setup_blender_env: bpy', bpy.app.version_string, 'numpy', numpy.__version__)"
 # the extension's bundled wheels (cp311 and cp313, every platform), so that the add-on
 # tests build offline

@@ -30,6 +30,7 @@ TINY = ("--size", "64x48", "--spp", "2", "--sharp-spp", "2", "--card-size", "48"
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
     pytest.importorskip("bpy")
+    pytest.importorskip("matplotlib")  # the gallery's plot (the `report` extra)
     base = tmp_path_factory.mktemp("demo")
     out, hero = base / "gallery", base / "hero.png"
     rc, stdout, stderr = run("demo", "--out", out, "--hero", hero, *TINY)

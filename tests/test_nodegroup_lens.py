@@ -189,6 +189,14 @@ def _node_footprints(aperture, side, group_aperture, blur="convolve", spp=1024):
     return rows, float(np.abs(out - model).max())
 
 
+def _convolve_or_skip():
+    """The Convolve node exists from Blender 5.0 (the group's polygon kernels and its
+    anamorphic ratio need it); before, those tests have nothing to run."""
+    pytest.importorskip("bpy")
+    if ng.is_legacy_api():
+        pytest.skip("no Convolve node before Blender 5.0: the group refuses blur 'convolve'")
+
+
 def _check(rows, gap, nfold_deg=2.0, iou=0.9):
     assert gap < 1e-3, gap
     for r in rows:
@@ -204,7 +212,7 @@ def test_node_footprints_match_cycles_with_six_blades(side):
     focus, 6 blades at 15 deg: the group (Convolve) against Cycles' depth of field (1024
     spp): 6-fold orientation within 2 deg from 2 px across, IoU at half peak >= 0.9 at
     every size. A disk group of the same render fails the IoU."""
-    pytest.importorskip("bpy")
+    _convolve_or_skip()
     rows, gap = _node_footprints(HEX, side, HEX)
     print(side, [(r["size"], round(r["nfold_err_deg"], 2), round(r["iou"], 3),
                   [round(e, 2) for e in r["axis_err_pct"]]) for r in rows])
@@ -215,19 +223,27 @@ def test_node_footprints_match_cycles_with_six_blades(side):
 
 @pytest.mark.blender
 @pytest.mark.parametrize("side", ["far", "near"])
-def test_node_footprints_turn_over_with_five_blades(side):
+def test_node_footprints_turn_over_with_five_blades(side, request):
     """5 blades at 10 deg: a point in front of the focus spreads into the pentagon turned
     by 180 degrees, which for odd blades is another shape: Convolve and Bokeh Blur both
     follow the side (n-fold orientation within 2 deg, IoU >= 0.9; Bokeh Blur's whole-pixel
     radius draws the 12 px circumradius as 12.5 px)."""
     pytest.importorskip("bpy")
-    for blur in ("convolve", "bokeh"):
+    blurs = ("bokeh",) if ng.is_legacy_api() else ("convolve", "bokeh")  # no Convolve on 4.x
+    if ng.is_legacy_api():
+        # measured on 4.2.23: IoU 0.75-0.81 at half peak, n-fold 1.6-2.8 deg, the group 0.013-0.015
+        # from its numpy model: 4.2's Bokeh Blur weighs the pentagon's rim otherwise (known
+        # limit, docs/blender.md); strict, so that a fix shows as an unexpected pass
+        request.applymarker(pytest.mark.xfail(
+            reason="Blender 4.x's Bokeh Blur draws the pentagon's rim unlike Cycles", strict=True))
+    for blur in blurs:
         rows, gap = _node_footprints(PENTA, side, PENTA, blur=blur)
         print(side, blur, [(r["size"], round(r["nfold_err_deg"], 2), round(r["iou"], 3))
                            for r in rows])
         _check(rows, gap)
     # the control: the pentagon not turned over (the other side's shape) is 36 deg off
-    rows, _ = _node_footprints(PENTA, side, Aperture(5, PENTA.rotation + math.pi))
+    rows, _ = _node_footprints(PENTA, side, Aperture(5, PENTA.rotation + math.pi),
+                               blur=blurs[0])
     assert min(abs(r["nfold_err_deg"]) for r in rows if r["size"] >= 2) > 10.0
 
 
@@ -239,7 +255,7 @@ def test_node_footprints_follow_the_ratio(side):
     the axis lengths within 2 %, the 6-fold orientation within 2 deg; IoU >= 0.9 at every
     size. Measured (1024 spp): 0.79 deg, 0.75 %, 1.06 deg, IoU 0.971-0.988 from 2 px
     (0.924-0.944 at 1 px). The ratio the other way round (x stretched) fails the axes."""
-    pytest.importorskip("bpy")
+    _convolve_or_skip()
     ap = Aperture(6, math.radians(15), 1.5)
     rows, gap = _node_footprints(ap, side, ap)
     _check(rows, gap)
