@@ -25,7 +25,7 @@ root, work = sys.argv[1], sys.argv[2]
 wanted = set(sys.argv[3:])
 sys.path.insert(0, root)
 sys.path.insert(0, os.path.join(root, "tests", "blender"))
-from scene_parts import emitter  # noqa: E402
+from scene_parts import black_world, cycles_cpu, emitter, sharp_camera  # noqa: E402
 
 import blender_addon  # noqa: E402  (this checkout)
 
@@ -49,42 +49,17 @@ def clean_scene(w=64, h=48, spp=SHARP_SPP):
     sc = bpy.context.scene
     sc.frame_start = sc.frame_end = 1
     sc.frame_set(1)
-    sc.render.engine = "CYCLES"
-    sc.cycles.device = "CPU"
-    sc.cycles.samples = spp
-    sc.cycles.seed = 0
-    sc.cycles.use_denoising = False
-    sc.cycles.use_adaptive_sampling = False
-    sc.cycles.max_bounces = 0
-    sc.render.resolution_x, sc.render.resolution_y = w, h
-    sc.render.resolution_percentage = 100
+    cycles_cpu(sc, spp, w, h)
     sc.render.pixel_aspect_x = sc.render.pixel_aspect_y = 1.0
     sc.render.use_border = False
     sc.render.use_crop_to_border = False
-    sc.render.filter_size = 0.01
     sc.render.film_transparent = False
     sc.render.use_compositing = False
     sc.render.use_stamp = False
     sc.unit_settings.scale_length = 1.0
-    sc.view_settings.view_transform = "Standard"
-    sc.view_layers[0].use_pass_z = True
     compat.set_multilayer_exr(sc.render.image_settings, color_depth="32")
-    world = bpy.data.worlds.new("black")
-    world.color = (0, 0, 0)
-    if world.node_tree is not None:  # Blender 5.0: a new world has a grey Background node
-        for node in world.node_tree.nodes:
-            if node.type == "BACKGROUND":
-                node.inputs["Strength"].default_value = 0.0
-    sc.world = world
-    cam_data = bpy.data.cameras.new("cam")
-    cam_data.lens, cam_data.sensor_width, cam_data.sensor_fit = 100.0, 36.0, "HORIZONTAL"
-    cam_data.dof.use_dof = False  # sharp passes; the DOF settings hold the lens
-    cam_data.dof.aperture_fstop = 1.0
-    cam_data.dof.aperture_blades = 0
-    cam_data.dof.focus_distance = 6.0
-    cam = bpy.data.objects.new("cam", cam_data)
-    sc.collection.objects.link(cam)
-    sc.camera = cam
+    black_world(sc)
+    sharp_camera(sc)
     tree = compat.compositor_tree(sc, create=False)
     if tree is not None:
         tree.nodes.clear()

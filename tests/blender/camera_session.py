@@ -22,7 +22,7 @@ blender_addon.register()
 
 from mpib_validate.runtime.io.camera_header import read_camera  # noqa: E402
 from mpib_validate.runtime.io.exr import read_exr  # noqa: E402
-from scene_parts import emitter  # noqa: E402  (this folder: the script's own)
+from scene_parts import black_world, cycles_cpu, emitter  # noqa: E402  (this folder: the script's own)
 
 
 def clean_scene(w, h, spp=1):
@@ -31,36 +31,19 @@ def clean_scene(w, h, spp=1):
         for item in list(coll):
             coll.remove(item)
     sc = bpy.context.scene
-    sc.render.engine = "CYCLES"
-    sc.cycles.device = "CPU"
-    sc.cycles.samples = spp
-    sc.cycles.seed = 0
-    sc.cycles.use_denoising = False
-    sc.cycles.use_adaptive_sampling = False
-    sc.cycles.max_bounces = 0
-    sc.render.resolution_x, sc.render.resolution_y = w, h
-    sc.render.resolution_percentage = 100
-    sc.render.filter_size = 0.01
+    cycles_cpu(sc, spp, w, h)
     sc.render.film_transparent = False
     sc.render.use_stamp = False
     sc.render.use_stamp_note = False
     sc.render.stamp_note_text = ""
     sc.unit_settings.scale_length = 1.0
-    sc.view_settings.view_transform = "Standard"
-    sc.view_layers[0].use_pass_z = True
     s = sc.render.image_settings
     if hasattr(s, "media_type"):  # Blender 5.0
         s.media_type = "MULTI_LAYER_IMAGE"
     else:
         s.file_format = "OPEN_EXR_MULTILAYER"
     s.color_depth = "32"
-    world = bpy.data.worlds.new("black")
-    world.color = (0, 0, 0)
-    if world.node_tree is not None:  # Blender 5.0: a new world has a grey Background node
-        for node in world.node_tree.nodes:
-            if node.type == "BACKGROUND":
-                node.inputs["Strength"].default_value = 0.0
-    sc.world = world
+    black_world(sc)
     cam_data = bpy.data.cameras.new("cam")
     cam_data.lens, cam_data.sensor_width, cam_data.sensor_height = 50.0, 36.0, 24.0
     cam_data.dof.use_dof = False  # sharp passes; the DOF settings hold the lens

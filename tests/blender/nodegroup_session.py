@@ -79,15 +79,9 @@ def build(scene_name, size, spp):
     world = bpy.data.worlds.new("black")
     world.color = (0, 0, 0)
     sc.world = world
-    cam_data = bpy.data.cameras.new("cam")
-    cam_data.lens, cam_data.sensor_width, cam_data.sensor_fit = 100.0, 36.0, "HORIZONTAL"
-    cam_data.dof.use_dof = False  # sharp passes; the DOF settings hold the lens
-    cam_data.dof.aperture_fstop = 1.0
-    cam_data.dof.aperture_blades = 0
-    cam_data.dof.focus_distance = 6.0
-    cam = bpy.data.objects.new("cam", cam_data)
-    sc.collection.objects.link(cam)
-    sc.camera = cam
+    from scene_parts import sharp_camera  # this folder (the script's own)
+
+    sharp_camera(sc)
     wall = emissive("wall", (0.2, 0.8, 0.3), 6.0)
     if scene_name == "cards":
         # checker wall at 6 m, an orange square at 1.5 m (A = 8.9 px per 1/m at 64 px)
