@@ -1765,11 +1765,12 @@ def run_on_passes(image: np.ndarray, depth: np.ndarray, graph: Graph, values: di
 # Drivers from the scene camera, and the scene's depth range without a render
 
 
-def _driver(socket, expression: str, variables) -> None:
-    """Replace the driver of ``socket.default_value``: a simple expression (evaluated
-    without Python) over SINGLE_PROP variables ``(name, id_type, id, data_path)``."""
-    socket.driver_remove("default_value")
-    fc = socket.driver_add("default_value")
+def _driver(owner, expression: str, variables, prop: str = "default_value") -> None:
+    """Replace the driver of ``owner.<prop>`` (a socket's value, a node's property): a
+    simple expression (evaluated without Python) over SINGLE_PROP variables ``(name,
+    id_type, id, data_path)``."""
+    owner.driver_remove(prop)
+    fc = owner.driver_add(prop)
     drv = fc.driver
     drv.type = "SCRIPTED"
     for name, id_type, ident, path in variables:
@@ -1864,20 +1865,8 @@ def _drive_bokeh_angles(group, cam, focus_expr: str, focus_vars) -> None:
         expr = f"{base!r} - r"
         if turn_at >= 0:
             expr += f" + ({math.pi!r} if {turn_at!r} * ({focus_expr}) > 1 else 0)"
-        bnode = group.nodes[name]
-        bnode.driver_remove("angle")
-        fc = bnode.driver_add("angle")
-        drv = fc.driver
-        drv.type = "SCRIPTED"
-        for vname, id_type, ident, path in [("r", "CAMERA", cam, "dof.aperture_rotation")] + (
-                focus_vars if turn_at >= 0 else []):
-            var = drv.variables.new()
-            var.name = vname
-            var.type = "SINGLE_PROP"
-            var.targets[0].id_type = id_type
-            var.targets[0].id = ident
-            var.targets[0].data_path = path
-        drv.expression = expr
+        _driver(group.nodes[name], expr, [("r", "CAMERA", cam, "dof.aperture_rotation")]
+                + (focus_vars if turn_at >= 0 else []), prop="angle")
 
 
 def scene_disparity_intervals(scene, cam_obj=None) -> list[tuple[float, float]]:
