@@ -100,16 +100,10 @@ def flip(ref, test, hdr: bool = False, mask=None) -> float:
 
 def boundaries_from_disparity(disparity: np.ndarray, threshold: float) -> np.ndarray:
     """Pixels whose disparity differs from a 4-neighbour's by more than ``threshold``
-    (both sides of the edge are marked)."""
-    d = np.asarray(disparity, np.float64)
-    b = np.zeros(d.shape, bool)
-    dx = np.abs(np.diff(d, axis=1)) > threshold
-    dy = np.abs(np.diff(d, axis=0)) > threshold
-    b[:, :-1] |= dx
-    b[:, 1:] |= dx
-    b[:-1] |= dy
-    b[1:] |= dy
-    return b
+    (both sides of the edge are marked): :func:`mpib_validate.runtime.layers.fill.jump_pixels`."""
+    from mpib_validate.runtime.layers.fill import jump_pixels
+
+    return jump_pixels(disparity, threshold)
 
 
 def boundaries_from_layers(layer: np.ndarray, disparity: np.ndarray,

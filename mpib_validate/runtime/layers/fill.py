@@ -21,6 +21,21 @@ import math
 import numpy as np
 
 
+def jump_pixels(disparity: np.ndarray, threshold: float) -> np.ndarray:
+    """Both sides of every 4-neighbour disparity jump larger than ``threshold``: the
+    pixels the layer builder treats as edge pixels (:func:`disparity_jumps` marks the
+    near side and gives the disparities across)."""
+    d = np.asarray(disparity, np.float64)
+    mask = np.zeros(d.shape, bool)
+    dx = np.abs(np.diff(d, axis=1)) > threshold
+    dy = np.abs(np.diff(d, axis=0)) > threshold
+    mask[:, :-1] |= dx
+    mask[:, 1:] |= dx
+    mask[:-1] |= dy
+    mask[1:] |= dy
+    return mask
+
+
 def disparity_jumps(disparity: np.ndarray, threshold: float):
     """Near-side pixels of 4-neighbour disparity jumps larger than ``threshold``.
 
