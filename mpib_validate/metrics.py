@@ -221,3 +221,58 @@ def sharp_remnants(output, reference, disparity, blur_parameter: float,
     must = ndimage.minimum_filter(r, 5, mode="nearest") > blur_px
     rem = must & (thin_structure(reference) < smooth) & (thin_structure(output) > keep)
     return rem, must
+
+
+# --------------------------------------------------------------------------------------
+# The degraded-depth targets' scope (issue #28)
+
+#: A highlight: an all-in-focus pixel brighter than 1 in some channel, grown by this many
+#: pixels (its anti-aliased rim, whose colour is still the light's). The photos suite's
+#: loss decomposition uses the same region (``bench.photos.oracle_disparities``).
+HIGHLIGHT_GROW_PX = 2
+#: Structures narrower than this (px) are out of scope: what a 3x3 grey opening or
+#: closing removes, a wire or strand 1-2 px wide. After the degradation's 2 px blur and
+#: 4x4 averaging such a structure keeps about a tenth of its jump, so no predicted map
+#: holds its depth (the loss decomposition of the degraded Blender scenes and cards).
+SCOPE_THIN_PX = 3
+
+
+def thin_disparity(disparity: np.ndarray, threshold: float, size: int = SCOPE_THIN_PX) -> np.ndarray:
+    """``(H, W)`` bool: pixels of structures narrower than ``size`` px in a disparity map,
+    where ``d - open(d)`` (a near wire) or ``close(d) - d`` (a slit onto the far side)
+    exceeds ``threshold`` (grey opening/closing with a ``size x size`` square, in the
+    map's units). A step edge, a ramp and a structure ``size`` px wide or more give 0."""
+    from scipy import ndimage
+
+    d = np.asarray(disparity, np.float64)
+    white = d - ndimage.grey_opening(d, (size, size), mode="nearest")
+    black = ndimage.grey_closing(d, (size, size), mode="nearest") - d
+    return (white > threshold) | (black > threshold)
+
+
+def degraded_scope_exclusion(all_in_focus, disparity, blur_parameter: float,
+                             focus_disparity: float, threshold: float | None = None,
+                             window: int = 9) -> np.ndarray:
+    """``(H, W)`` bool: the pixels the re-scoped degraded-depth targets leave out, those
+    whose error comes from depth that no predicted map can hold.
+
+    Seeds: (a) HDR highlights, ``max_c L_c > 1`` in the linear all-in-focus radiance
+    ``all_in_focus``, grown by :data:`HIGHLIGHT_GROW_PX`; (b) structures under
+    :data:`SCOPE_THIN_PX` px wide in the *exact* ``disparity``
+    (:func:`thin_disparity`), by more than ``threshold`` (default ``1 / A``: 1 px of
+    blur radius ``A |d - d_f|``, the jump the boundary masks count). Each seed is then
+    grown to the pixels its blur reaches, a disk whose radius is the largest blur radius
+    ``A |d - d_f|`` (px) in its ``window x window`` neighbourhood
+    (:func:`occlusion_mask`): that covers both the structure's own footprint and the one
+    a predicted map gives it (the degraded map's value at a 1-3 px structure is a mean of
+    its surroundings within a few pixels)."""
+    from scipy import ndimage
+
+    A = float(blur_parameter)
+    d = np.asarray(disparity, np.float64)
+    thr = 1.0 / A if threshold is None else float(threshold)
+    lights = np.asarray(all_in_focus, np.float64)[..., :3].max(axis=-1) > 1.0
+    if lights.any():
+        lights = ndimage.binary_dilation(lights, iterations=HIGHLIGHT_GROW_PX)
+    seeds = lights | thin_disparity(d, thr)
+    return occlusion_mask(seeds, d, A, focus_disparity, window)

@@ -141,7 +141,14 @@ def test_photos_suite_on_one_tiny_scene_per_family(tmp_path):
         assert m in methods
     for row in r["rows"]:
         assert math.isfinite(row["psnr"]) and math.isfinite(row["psnr_ob"])
-    assert (tmp_path / "photos.md").read_text().count("| default degraded |") == 2
+        assert 0 <= row["scoped_fraction"] <= 1
+        assert 0 <= row["remnants"] <= row["must_blur_smooth"] <= row["must_blur"]
+    page = (tmp_path / "photos.md").read_text()
+    if "defocus-node degraded" in methods:  # the targets need the node (bpy)
+        assert page.count("cards: re-scoped degraded-depth targets\n") == 2
+    assert page.count("cards: sharp remnants against the truth\n") == 2
+    # a family table and a remnant table per family
+    assert page.count("| default degraded |") == 4
     assert (tmp_path / "photos.md").read_text().count("where the degraded depth loses") == 2
     assert (tmp_path / "photos.json").stat().st_size > 0
 
@@ -375,3 +382,77 @@ def test_remnant_table_and_crops_on_one_shipped_photograph(tmp_path):
     with Image.open(tmp_path / "remnants.png") as im:
         assert im.width == 3 * 4 * (48 + 4) and im.height == 3 * 2 * (48 + 4)
     assert "| chelsea (451x300) | near |" in "\n".join(remnants.markdown(r))
+
+
+def _scope_scene():
+    """96x96: a far wall (d = 0.2, in focus) behind a wide near card (d = 0.6, columns
+    < 30), a near wire 1 px wide (column 60) and a 3 px wide bar (columns 80-82), and a
+    point light (radiance 4) on the wall at (10, 45); A = 20 px, so everything near blurs
+    by A |0.6 - 0.2| = 8 px."""
+    D = np.full((96, 96), 0.2)
+    D[:, :30] = 0.6
+    D[:, 60] = 0.6
+    D[:, 80:83] = 0.6
+    aif = np.full((96, 96, 3), 0.5)
+    aif[10, 45] = 4.0
+    return aif, D, 20.0, 0.2
+
+
+def test_scope_exclusion_drops_a_wire_and_a_highlight_and_keeps_a_card_edge():
+    """The re-scoped targets' exclusion: a 1 px wire and an HDR highlight are out, with
+    the pixels their blur reaches (8 px from the wire; 2 px of rim + the 9x9 window's
+    largest radius, 0 px for a light on the in-focus wall); a wide card's edge and a
+    bar 3 px wide stay in."""
+    from mpib_validate.metrics import degraded_scope_exclusion, thin_disparity
+
+    aif, D, A, d_f = _scope_scene()
+    thin = thin_disparity(D, 1.0 / A)
+    assert thin[:, 60].all() and thin.sum() == 96  # the wire, nothing else
+    ex = degraded_scope_exclusion(aif, D, A, d_f)
+    assert ex[:, 60].all() and ex[50, 52] and ex[50, 68]  # the wire and 8 px of its blur
+    assert not ex[50, 50] and not ex[50, 70]  # 10 px away: the blur does not reach
+    assert ex[10, 45] and ex[12, 45] and not ex[10, 49]  # the light, its rim
+    assert not ex[40:90, 20:40].any()  # the card's edge (column 29 | 30), far from the rest
+    assert not ex[40:90, 76:87].any()  # the 3 px bar: a structure a map can hold
+    # the same wire at the far side's depth is no structure (no jump above 1 px of blur)
+    D2 = D.copy()
+    D2[:, 60] = 0.2 + 0.9 / A
+    assert not thin_disparity(D2, 1.0 / A)[:, 60].any()
+
+
+def test_scope_scores_and_targets_on_a_synthetic_pair():
+    """``scope_scores``: the masked PSNR leaves the excluded pixels out (an error there
+    changes the unmasked figure only) and a line kept in the blur is a remnant;
+    ``scope_summary`` states each target met or missed and names the failing scenes."""
+    from mpib_validate import metrics
+    from mpib_validate.bench.photos import scope_scores, scope_summary
+
+    aif, D, A, d_f = _scope_scene()
+    d_f = 0.6  # the card in focus: the wall blurs by 8 px
+    rng = np.random.default_rng(0)
+    truth = 0.3 + 0.01 * rng.standard_normal((96, 96, 3))
+    truth = np.clip(truth, 0, 1)
+    from scipy import ndimage
+
+    truth = ndimage.uniform_filter(truth, (9, 9, 1))  # smooth: what a blur leaves
+    mask = np.ones((96, 96), bool)
+    ex = metrics.degraded_scope_exclusion(aif, D, A, d_f)
+    out = truth + 0.01
+    out[:, 58:63] += 0.2  # a wrong wire's blur, inside the exclusion
+    out[40, 38:52] -= 0.15  # a 1 px dark line on the blurred wall, kept sharp
+    s = scope_scores(truth, out, mask, ex, D, A, d_f)
+    keep = ~ex
+    assert math.isclose(s["psnr_ob_scoped"], metrics.psnr(truth, np.clip(out, 0, 1), keep))
+    assert s["psnr_ob_scoped"] > metrics.psnr(truth, np.clip(out, 0, 1), mask) + 10
+    assert math.isclose(s["scoped_fraction"], keep.mean())
+    assert s["remnants"] == 14 and s["must_blur"] > 0
+    rows = [{"scene": sc, "method": m, "psnr_ob": ob, "psnr_ob_scoped": sv, "scoped_fraction": 0.5}
+            for sc, vals in (("a", (30.0, 28.0, 23.0)), ("b", (30.0, 26.0, 23.0)))
+            for m, sv, ob in zip(("exact", "guided", "node"), vals, (30.0, 20.0, 18.0))]
+    sm = scope_summary(rows, "toy", "exact", "guided", "node")
+    assert sm["scoped"]["within"] == -3.0 and sm["scoped"]["within_met"]
+    assert sm["scoped"]["within_fails"] == {"b": -4.0}
+    assert sm["scoped"]["over_node"] == 4.0 and sm["scoped"]["over_node_met"]
+    assert sm["scoped"]["over_node_fails"] == {"b": 3.0}
+    assert not sm["unmasked"]["within_met"] and not sm["unmasked"]["over_node_met"]
+    assert "fails on b -4.0" in sm["headline"] and "missed" in sm["headline"]

@@ -44,7 +44,11 @@ seeded per scene): the default preset without and with the guided refinement
 against the same truth; the exact depth's scores are the bound. It is the photos
 suite's measurement on scenes that are not cards, with its loss decomposition (the
 exact disparity given back to the guided result on the highlights, the uncertain band,
-both: :func:`mpib_validate.bench.photos.oracle_disparities`).
+both: :func:`mpib_validate.bench.photos.oracle_disparities`), the re-scoped targets
+(PSNR_ob outside HDR highlights and structures under 3 px wide, beside the unmasked one)
+and the sharp remnants against Cycles (:func:`mpib_validate.bench.photos.scope_scores`).
+``run(out, cache=..., degraded_only=True)`` runs this part alone on cached renders
+(``blender-degraded.md``).
 
 The Cycles renders are cached under ``<out>/blender-cache`` (see
 :func:`blender_scenes.render_suite`): a re-run renders nothing.
@@ -162,6 +166,34 @@ def method_images(sc, exact_samples: int = 1024, layered=None, degraded: bool = 
     return out
 
 
+def degraded_part_images(sc) -> dict:
+    """What the degraded-depth tables need of one scene, as :func:`method_images` makes
+    it: the default preset on the exact depth (timed after a warm-up), the Defocus node
+    on the exact depth (when bpy is there), the sharp input, and :func:`degraded_images`."""
+    from mpib_validate.blender.scenes import lens
+    from mpib_validate.runtime.io.camera_header import resolve
+    from mpib_validate.runtime.refocus import load_passes, refocus
+    from mpib_validate.runtime.request import RefocusRequest
+
+    path = sc.folder / "passes.exr"
+    passes = load_passes(path)
+    H, W = passes.depth.shape
+    cam = resolve(passes.camera, {}, W, H, path).camera  # as mpib refocus reads it
+    A, d_f = float(cam.blur_parameter), float(cam.focus_disparity)
+    refocus(RefocusRequest(passes, A, d_f, "default"))  # warm-up (kernel caches), untimed
+    res, seconds = _timed(lambda: refocus(RefocusRequest(passes, A, d_f, "default")))
+    out = {DEFAULT: (premultiplied(res.image), seconds)}
+    import importlib.util
+
+    if importlib.util.find_spec("bpy") is not None:
+        from mpib_validate.baselines.defocus_node import defocus
+
+        out[NODE] = defocus(passes.colour, passes.depth, lens(sc.spec))
+    out["sharp input"] = (passes.colour, 0.0)
+    out.update(degraded_images(sc, passes, A, d_f))
+    return out
+
+
 def degraded_seed(sc) -> int:
     """The scene's seed for the degradation (the same map on every run)."""
     import zlib
@@ -224,17 +256,26 @@ def node_group(passes, spec, A: float):
 
 
 def scene_rows(sc, images: dict) -> list[dict]:
+    """One row per method: time, PSNR, PSNR_ob, SSIM, SSIM_ob against Cycles' depth of
+    field, and the re-scoped PSNR_ob and sharp remnants against it
+    (:func:`mpib_validate.bench.photos.scope_scores`: outside the HDR highlights of the
+    sharp pass and the structures under 3 px wide of its Z pass's disparity)."""
     from mpib_validate import metrics
+    from mpib_validate.bench.photos import scope_scores
     from mpib_validate.cards.evaluate import score
+    from mpib_validate.runtime.layers.passes import depth_to_disparity
 
     m = sc.meta
     mask = boundary_mask(sc.depth, m["A"], m["d_f"])
+    D = depth_to_disparity(sc.depth)
+    excl = metrics.degraded_scope_exclusion(sc.colour, D, m["A"], m["d_f"])
     label = f"{sc.spec.kind}-{sc.spec.focus}"
     base = {"scene": label, "kind": sc.spec.kind, "focus": sc.spec.focus, "family": "blender"}
     rows = []
     for method, (img, seconds) in images.items():
         rows.append({**base, "method": method, "seconds": float(seconds),
-                     **score(sc.truth, img, mask, with_flip=False)})
+                     **score(sc.truth, img, mask, with_flip=False),
+                     **scope_scores(sc.truth, img, mask, excl, D, m["A"], m["d_f"])})
     a, b = (np.clip(s, 0, 1) for s in sc.seeds)
     gain = 20.0 * math.log10(2.0)
     rows.append({**base, "method": "truth noise floor", "seconds": 0.0,
@@ -358,40 +399,52 @@ def write_crops(path: Path, strips: list) -> None:
 # The suite
 
 
-def run(out: Path, quick: bool = True, config: dict | None = None) -> dict:
+def run(out: Path, quick: bool = True, config: dict | None = None, cache=None,
+        degraded_only: bool = False) -> dict:
     """The suite; ``config`` (``width``, ``height``, ``spp``, ``sharp_spp``) replaces
-    :data:`QUICK` / :data:`FULL` (tests run it tiny)."""
+    :data:`QUICK` / :data:`FULL` (tests run it tiny). ``cache``: the Cycles renders'
+    folder (default ``<out>/blender-cache``; a cached scene is read, not rendered).
+    ``degraded_only``: only the degraded-depth part (the default preset and the Defocus
+    node on the exact and the degraded depth, the loss decomposition, the re-scoped
+    targets, the sharp remnants: :func:`degraded_part_images`), without the emitters, the
+    layered renders and the other methods; it writes ``blender-degraded.md`` and
+    ``.json``."""
     from mpib_validate.blender.layered_suite import render_layered_suite
     from mpib_validate.blender.scenes import FOCI, SceneSpec, load_scene, render_suite, suite_specs
     from mpib_validate.bench.report import pareto_plot
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    cache = Path(cache) if cache is not None else out / "blender-cache"
     cfg = dict(config or (QUICK if quick else FULL))
     specs = suite_specs(cfg["width"], cfg["height"])
-    emit_specs = [SceneSpec("emitters", 0, cfg["width"], cfg["height"], f) for f in FOCI]
+    emit_specs = ([] if degraded_only else
+                  [SceneSpec("emitters", 0, cfg["width"], cfg["height"], f) for f in FOCI])
     t0 = time.perf_counter()
-    folders = render_suite(out / "blender-cache", specs + emit_specs, cfg["spp"],
-                           sharp_spp=cfg["sharp_spp"])
-    layered = render_layered_suite(out / "blender-cache", specs, cfg["sharp_spp"],
-                                   folders[:len(specs)])
+    folders = render_suite(cache, specs + emit_specs, cfg["spp"], sharp_spp=cfg["sharp_spp"])
+    layered = ({} if degraded_only else
+               render_layered_suite(cache, specs, cfg["sharp_spp"], folders[:len(specs)]))
     render_seconds = time.perf_counter() - t0
     rows, scenes, strips, emitters = [], [], [], []
     for folder in folders[:len(specs)]:
         sc = load_scene(folder)
         print(f"bench blender: {sc.spec.name} ...", flush=True)
+        info = {"scene": f"{sc.spec.kind}-{sc.spec.focus}", "folder": folder.name,
+                "A": sc.meta["A"], "d_f": sc.meta["d_f"], "fstop": sc.meta["fstop"],
+                "focus_distance": sc.meta["focus_distance"], "noise": sc.meta["noise"],
+                "render_seconds": sc.meta["seconds"],
+                "truth_spp": sc.meta.get("truth_spp", sc.meta["spp"]),
+                "largest_radius_px": _largest_radius(sc)}
+        if degraded_only:
+            rows += scene_rows(sc, degraded_part_images(sc))
+            scenes.append(info)
+            continue
         lfolder = layered[sc.spec.name]
         lmeta = json.loads((lfolder / "meta.json").read_text())
         images = method_images(sc, cfg.get("exact_samples", 1024), lfolder / "layers.exr")
         rows += scene_rows(sc, images)
-        scenes.append({"scene": f"{sc.spec.kind}-{sc.spec.focus}", "folder": folder.name,
-                       "A": sc.meta["A"], "d_f": sc.meta["d_f"], "fstop": sc.meta["fstop"],
-                       "focus_distance": sc.meta["focus_distance"], "noise": sc.meta["noise"],
-                       "render_seconds": sc.meta["seconds"],
-                       "truth_spp": sc.meta.get("truth_spp", sc.meta["spp"]),
-                       "largest_radius_px": _largest_radius(sc),
-                       "layered": {"groups": lmeta["groups"], "report": lmeta["report"],
-                                   "seconds": lmeta["seconds"]}})
+        scenes.append({**info, "layered": {"groups": lmeta["groups"], "report": lmeta["report"],
+                                           "seconds": lmeta["seconds"]}})
         if (sc.spec.kind, sc.spec.focus) in CROP_SCENES:
             tiles, at = crop_strip(sc, images)
             strips.append((f"{sc.spec.kind}-{sc.spec.focus} at ({at[1]}, {at[0]})", tiles))
@@ -404,8 +457,12 @@ def run(out: Path, quick: bool = True, config: dict | None = None) -> dict:
         write_crops(out / "blender-crops.png", strips)
     result = {"suite": "blender", "quick": quick, **cfg, "machine": machine_info(),
               "render_seconds": render_seconds, "scenes": scenes, "rows": rows,
-              "emitters": emitters, "crops": "blender-crops.png" if strips else None}
+              "emitters": emitters, "crops": "blender-crops.png" if strips else None,
+              "degraded_only": degraded_only}
     result["summary"] = _summarise(result)
+    if degraded_only:
+        result["plots"] = []
+        return finish(out, "blender-degraded", result, _markdown)
     try:
         for metric in ("psnr", "psnr_ob"):
             pareto_plot(rows, "blender", out / f"pareto-blender-{metric}.png", metric,
@@ -424,7 +481,10 @@ def _largest_radius(sc) -> float:
     return float(sc.meta["A"] * np.abs(D - sc.meta["d_f"]).max())
 
 
-KEYS = ("seconds", "psnr", "psnr_ob", "ssim", "ssim_ob")
+KEYS = ("seconds", "psnr", "psnr_ob", "ssim", "ssim_ob", "psnr_ob_scoped", "scoped_fraction")
+#: The rows whose sharp remnants against Cycles the degraded-depth part gives (the
+#: exact-depth ones are the control).
+REMNANT_METHODS = (DEFAULT, DEGRADED, DEGRADED_GUIDED, DEGRADED_THIN, NODE_DEGRADED, NODE)
 
 
 def _by_scene(rows) -> dict:
@@ -498,6 +558,14 @@ def _summarise(result) -> dict:
                 f"{orc['band'] - mean['guided']:+.1f} dB, on both "
                 f"{orc['both'] - mean['guided']:+.1f} dB; the rest "
                 f"{mean['exact'] - orc['both']:+.1f} dB to the exact bound.")
+    from mpib_validate.bench.photos import remnant_summary, scope_summary
+
+    scope = scope_summary(rows, "Blender scenes", DEFAULT, DEGRADED_GUIDED, NODE_DEGRADED)
+    if scope:
+        heads.append(scope["headline"])
+    rem = remnant_summary(rows, "Blender scenes", REMNANT_METHODS)
+    if rem.get("methods"):
+        heads.append(rem["headline"])
     g = {r["method"]: r for r in table}
     if DEFAULT in g and "exact-mpi" in g:
         heads.append(f"Blender scenes: the same MPI rendered exactly reaches PSNR_ob "
@@ -515,7 +583,8 @@ def _summarise(result) -> dict:
                      f"(groups by side of the focus plane and size); the sharp input's own "
                      f"energy / Cycles' {ir.min():.3f}-{ir.max():.3f}, the default's energy / "
                      f"the input's {np.nanmin(er / ir):.3f}-{np.nanmax(er / ir):.3f}.")
-    return {"headlines": heads, "table": table, "margins": margins}
+    return {"headlines": heads, "table": table, "margins": margins, "scope": scope,
+            "remnants": rem}
 
 
 #: Scene kinds the layered target (+3 dB over the single pass) is for: thin structures,
@@ -588,10 +657,12 @@ def _markdown(result) -> str:
              f"(disparity jumps of 1 px blur radius, dilated by the blur radius).", ""]
     lines += [f"- {h}" for h in result["summary"]["headlines"]] + [""]
     lines += ["## Mean over scenes and foci", "",
-              "| method | time (s) | PSNR | PSNR_ob | SSIM | SSIM_ob |", "|---|---|---|---|---|---|"]
+              "| method | time (s) | PSNR | PSNR_ob | PSNR_ob re-scoped | SSIM | SSIM_ob |",
+              "|---|---|---|---|---|---|---|"]
     for r in result["summary"]["table"]:
         lines.append(f"| {r['method']} | {_fmt(r['seconds'], 3)} | {_fmt(r['psnr'])} | "
-                     f"{_fmt(r['psnr_ob'])} | {_fmt(r['ssim'], 4)} | {_fmt(r['ssim_ob'], 4)} |")
+                     f"{_fmt(r['psnr_ob'])} | {_fmt(r.get('psnr_ob_scoped'))} | "
+                     f"{_fmt(r['ssim'], 4)} | {_fmt(r['ssim_ob'], 4)} |")
     lines += ["", "## PSNR_ob per scene and focus", "",
               "| scene | max radius (px) | f-stop | sharp input | Defocus node | node group "
               "| default (EXR as written) | default, normalised | exact MPI | draft | best "
@@ -648,6 +719,23 @@ def _markdown(result) -> str:
         mean = {k: float(np.mean([r[k] for r in deg])) for k in keys}
         lines.append(f"| mean | " + " | ".join(_fmt(mean[k]) for k in keys) +
                      f" | {mean['guided'] - mean['node_degraded']:+.2f} |")
+        from mpib_validate.bench.photos import scope_markdown
+
+        lines += [""] + scope_markdown(result["summary"].get("scope", {}),
+                                       result["summary"].get("remnants", {}),
+                                       result["rows"], REMNANT_METHODS)
+        rm = [m for m in REMNANT_METHODS if any(r["method"] == m for r in result["rows"])]
+        if rm:
+            lines += ["Sharp remnants against Cycles per scene (count / must-blur pixels where "
+                      "the truth is smooth enough to count):", "",
+                      "| scene | " + " | ".join(rm) + " |", "|---" * (len(rm) + 1) + "|"]
+            for scene, g in by.items():
+                if DEGRADED not in g:
+                    continue
+                lines.append(f"| {scene} | " + " | ".join(
+                    f"{g[m]['remnants']} / {g[m]['must_blur_smooth']}" if m in g else "-"
+                    for m in rm) + " |")
+            lines.append("")
         okeys = ("oracle_highlights", "oracle_band", "oracle_both")
         if all(math.isfinite(r[k]) for r in deg for k in okeys):
             lines += ["", "Where the loss lies: the guided result with the exact disparity "
