@@ -456,3 +456,22 @@ def test_scope_scores_and_targets_on_a_synthetic_pair():
     assert sm["scoped"]["over_node_fails"] == {"b": 3.0}
     assert not sm["unmasked"]["within_met"] and not sm["unmasked"]["over_node_met"]
     assert "fails on b -4.0" in sm["headline"] and "missed" in sm["headline"]
+
+
+def test_refine_cost_measures_the_whole_refocus_at_the_size_asked():
+    """``refine_cost`` (the suite runs it at the issue's 2000x1333): the scene has the
+    size asked and a largest blur radius of 60 px; the whole refocus is the refinement
+    plus the rest."""
+    from mpib_validate.bench import photos
+
+    scene = photos.cost_scene(200, 134)
+    lo, hi = scene.disparity_range()
+    cam = scene.camera
+    assert (cam.width, cam.height) == (200, 134)
+    assert math.isclose(cam.blur_parameter * max(abs(hi - cam.focus_disparity),
+                                                 abs(lo - cam.focus_disparity)), 60.0)
+    c = photos.refine_cost((200, 134))
+    assert (c["width"], c["height"]) == (200, 134)
+    assert c["refine_cpu_s"] > 0 and c["rest_cpu_s"] > 0
+    assert math.isclose(c["refocus_cpu_s"], c["refine_cpu_s"] + c["rest_cpu_s"])
+    assert photos.COST_SIZE == (2000, 1333)
