@@ -235,19 +235,34 @@ HIGHLIGHT_GROW_PX = 2
 #: 4x4 averaging such a structure keeps about a tenth of its jump, so no predicted map
 #: holds its depth (the loss decomposition of the degraded Blender scenes and cards).
 SCOPE_THIN_PX = 3
+#: A thin structure has at least this many pixels (8-connected): a wire, a strand, a
+#: leg. The opening also takes the 1-2 px tip where a digitised outline leaves the pixel
+#: grid, which is part of an outline, not a structure under 3 px: the corners of rotated
+#: cards and of the horses' outlines (0 to 20 px per 192x192 card scene of the photos
+#: suite) and the limbs of round objects (the quick Blender scenes: 7 tips on the
+#: spheres, 4 on Suzanne, 1 on the ground, each 1-2 px).
+SCOPE_MIN_PIXELS = 3
 
 
-def thin_disparity(disparity: np.ndarray, threshold: float, size: int = SCOPE_THIN_PX) -> np.ndarray:
+def thin_disparity(disparity: np.ndarray, threshold: float, size: int = SCOPE_THIN_PX,
+                   min_pixels: int = SCOPE_MIN_PIXELS) -> np.ndarray:
     """``(H, W)`` bool: pixels of structures narrower than ``size`` px in a disparity map,
     where ``d - open(d)`` (a near wire) or ``close(d) - d`` (a slit onto the far side)
     exceeds ``threshold`` (grey opening/closing with a ``size x size`` square, in the
-    map's units). A step edge, a ramp and a structure ``size`` px wide or more give 0."""
+    map's units), in 8-connected groups of at least ``min_pixels``. A step edge, a ramp,
+    a structure ``size`` px wide or more, and an outline's 1-2 px tip give 0."""
     from scipy import ndimage
 
     d = np.asarray(disparity, np.float64)
     white = d - ndimage.grey_opening(d, (size, size), mode="nearest")
     black = ndimage.grey_closing(d, (size, size), mode="nearest") - d
-    return (white > threshold) | (black > threshold)
+    thin = (white > threshold) | (black > threshold)
+    if min_pixels > 1 and thin.any():
+        lab, n = ndimage.label(thin, structure=np.ones((3, 3), bool))
+        big = np.bincount(lab.ravel(), minlength=n + 1) >= min_pixels
+        big[0] = False
+        thin = big[lab]
+    return thin
 
 
 def degraded_scope_exclusion(all_in_focus, disparity, blur_parameter: float,

@@ -386,13 +386,15 @@ def test_remnant_table_and_crops_on_one_shipped_photograph(tmp_path):
 
 def _scope_scene():
     """96x96: a far wall (d = 0.2, in focus) behind a wide near card (d = 0.6, columns
-    < 30), a near wire 1 px wide (column 60) and a 3 px wide bar (columns 80-82), and a
+    < 30, a 1 px tip at (70, 30)), a near wire 1 px wide (column 60) and a 3 px wide bar
+    (columns 80-82), and a
     point light (radiance 4) on the wall at (10, 45); A = 20 px, so everything near blurs
     by A |0.6 - 0.2| = 8 px."""
     D = np.full((96, 96), 0.2)
     D[:, :30] = 0.6
     D[:, 60] = 0.6
     D[:, 80:83] = 0.6
+    D[70, 30] = 0.6  # a 1 px tip of the card's outline (a digitised corner leaves such)
     aif = np.full((96, 96, 3), 0.5)
     aif[10, 45] = 4.0
     return aif, D, 20.0, 0.2
@@ -402,12 +404,13 @@ def test_scope_exclusion_drops_a_wire_and_a_highlight_and_keeps_a_card_edge():
     """The re-scoped targets' exclusion: a 1 px wire and an HDR highlight are out, with
     the pixels their blur reaches (8 px from the wire; 2 px of rim + the 9x9 window's
     largest radius, 0 px for a light on the in-focus wall); a wide card's edge and a
-    bar 3 px wide stay in."""
+    bar 3 px wide stay in, and so does a 1 px tip of the card's outline."""
     from mpib_validate.metrics import degraded_scope_exclusion, thin_disparity
 
     aif, D, A, d_f = _scope_scene()
     thin = thin_disparity(D, 1.0 / A)
     assert thin[:, 60].all() and thin.sum() == 96  # the wire, nothing else
+    assert thin_disparity(D, 1.0 / A, min_pixels=1)[70, 30]  # the tip, a group of 1 px
     ex = degraded_scope_exclusion(aif, D, A, d_f)
     assert ex[:, 60].all() and ex[50, 52] and ex[50, 68]  # the wire and 8 px of its blur
     assert not ex[50, 50] and not ex[50, 70]  # 10 px away: the blur does not reach
