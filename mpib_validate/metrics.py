@@ -207,7 +207,9 @@ def sharp_remnants(output, reference, disparity, blur_parameter: float,
     """Sharp remnants of a refocused image: ``(remnants, must_blur)``, boolean ``(H, W)``.
 
     ``must_blur``: pixels whose whole 5x5 window ``disparity`` blurs by more than
-    ``blur_px``: ``min_5x5 A |d - d_f| > blur_px`` (px). ``remnants``: those of them
+    ``blur_px``: ``min_5x5 A |d - d_f| > blur_px`` (px). ``disparity`` may be a tuple of
+    maps: then every one of them must blur the window (the input and the refined map of
+    a photograph: a line drawn into a region that both say is blurred). ``remnants``: those of them
     where :func:`thin_structure` of ``reference`` is below ``smooth`` and that of
     ``output`` above ``keep``, a line or dot one or two pixels wide that a blur of that
     radius cannot leave. ``output`` and ``reference`` are display-encoded images in
@@ -217,8 +219,11 @@ def sharp_remnants(output, reference, disparity, blur_parameter: float,
     is (the input's for a photograph)."""
     from scipy import ndimage
 
-    r = blur_parameter * np.abs(np.asarray(disparity, np.float64) - focus_disparity)
-    must = ndimage.minimum_filter(r, 5, mode="nearest") > blur_px
+    maps = disparity if isinstance(disparity, (tuple, list)) else (disparity,)
+    must = np.ones(np.shape(maps[0]), bool)
+    for d in maps:
+        r = blur_parameter * np.abs(np.asarray(d, np.float64) - focus_disparity)
+        must &= ndimage.minimum_filter(r, 5, mode="nearest") > blur_px
     rem = must & (thin_structure(reference) < smooth) & (thin_structure(output) > keep)
     return rem, must
 

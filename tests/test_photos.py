@@ -424,6 +424,12 @@ def test_sharp_remnants_see_a_line_and_not_an_edge():
     assert not sharp_remnants(step, smooth, D, 40.0, 0.4)[0].any()
     assert not sharp_remnants(line, line, D, 40.0, 0.4)[0].any()  # the reference's own
     assert not sharp_remnants(line, smooth, D, 40.0, 0.85)[0].any()  # in focus: may be sharp
+    # with two maps, the region must blur in both: where the second puts the line's rows
+    # in focus (a refined map that moved an edge there), only the rest of it counts
+    R = D.copy()
+    R[15:25, 30:] = 0.4
+    rem2, must2 = sharp_remnants(line, smooth, (D, R), 40.0, 0.4)
+    assert not must2[20, 40] and must2[20, 10] and rem2.sum() == 2 * (30 - 2 - 10)
 
 
 def test_remnant_table_and_crops_on_one_shipped_photograph(tmp_path):
@@ -437,6 +443,7 @@ def test_remnant_table_and_crops_on_one_shipped_photograph(tmp_path):
     assert [row["focus"] for row in r["rows"]] == ["near", "far"]
     for row in r["rows"]:
         assert 0 <= row["remnants_input"] <= row["must_blur_input"] > 0
+        assert 0 <= row["remnants_both"] <= row["must_blur_both"] <= row["must_blur_input"]
         assert 0 <= row["remnants_true"] <= row["must_blur_true"] > 0
         assert row["psnr_guided"] > 30 and row["psnr_off"] > 30
     with Image.open(tmp_path / "remnants.png") as im:
