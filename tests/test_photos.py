@@ -63,7 +63,8 @@ def test_guided_filter_with_a_flat_guide_is_the_box_mean_of_the_box_mean():
     rng = np.random.default_rng(0)
     p = rng.random((20, 24))
     q = guided_filter(np.full((20, 24, 3), 0.5), p, 2, 1e-3)
-    np.testing.assert_allclose(q, box_mean(box_mean(p, 2), 2), atol=1e-12)
+    # the filter computes in float32: values below 1 to a few of its ulps (6e-8 each)
+    np.testing.assert_allclose(q, box_mean(box_mean(p, 2), 2), atol=1e-6)
 
 
 def _crossing(D, mid=0.3):

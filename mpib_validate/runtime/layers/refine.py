@@ -69,8 +69,15 @@ def box_mean(x: np.ndarray, r: int) -> np.ndarray:
     # uniform_filter with a constant-0 border, divided by the same filter of ones, is the
     # mean over the clipped window
     s = ndimage.uniform_filter(x, size, mode="constant", cval=0.0)
-    n = ndimage.uniform_filter(np.ones(x.shape[:2]), size[:2], mode="constant", cval=0.0)
+    # the same filter of ones is separable: the share of each axis's window inside the image
+    n = np.outer(_window_share(x.shape[0], r), _window_share(x.shape[1], r)).astype(x.dtype)
     return s / (n[..., None] if x.ndim == 3 else n)
+
+
+def _window_share(n: int, r: int) -> np.ndarray:
+    """``(n,)``: the share of a ``2r+1`` window centred on each index that lies in ``[0, n)``."""
+    i = np.arange(n)
+    return (np.minimum(i + r, n - 1) - np.maximum(i - r, 0) + 1) / (2 * r + 1)
 
 
 def guided_filter(guide: np.ndarray, p: np.ndarray, r: int, eps: float) -> np.ndarray:
@@ -83,9 +90,13 @@ def guided_filter(guide: np.ndarray, p: np.ndarray, r: int, eps: float) -> np.nd
         p: ``(H, W)`` input to filter.
         r: window radius (pixels); eps: ridge, in squared guide units (an edge whose
             contrast variance is below ``eps`` is smoothed rather than kept).
+
+    Computed in float32 (the guide is about [0, 1] and ``eps`` 1e-4 or more, so the
+    window variances keep 3 significant digits or more; the refinement only compares
+    ``q`` with 1/2).
     """
-    I = np.asarray(guide, np.float64)
-    p = np.asarray(p, np.float64)
+    I = np.asarray(guide, np.float32)
+    p = np.asarray(p, np.float32)
     mI = box_mean(I, r)
     mp = box_mean(p, r)
     cIp = box_mean(I * p[..., None], r) - mI * mp[..., None]
@@ -109,8 +120,8 @@ def guided_filter(guide: np.ndarray, p: np.ndarray, r: int, eps: float) -> np.nd
 
 def colour_guide(colour: np.ndarray) -> np.ndarray:
     """``(c / (1 + c))^(1/2.2)`` of the first three (linear, >= 0) channels."""
-    c = np.maximum(np.asarray(colour, np.float64)[..., :3], 0.0)
-    return (c / (1.0 + c)) ** (1.0 / 2.2)
+    c = np.maximum(np.asarray(colour, np.float32)[..., :3], 0.0)
+    return (c / (1.0 + c)) ** np.float32(1.0 / 2.2)
 
 
 def refine_disparity(colour: np.ndarray, disparity: np.ndarray, blur_parameter: float,
@@ -220,16 +231,20 @@ def _thick_flips(near: np.ndarray, m: np.ndarray) -> np.ndarray:
     squares of the side they join."""
     from scipy import ndimage
 
-    square = np.ones((FLIP_SQUARE, FLIP_SQUARE), bool)
-    ring = np.ones((3, 3), bool)
+    def opening(x):
+        # binary opening by the FLIP_SQUARE square, the image's outside counted as True
+        # (scipy's binary_opening with border_value=1), as separable minimum and maximum
+        # filters
+        e = ndimage.minimum_filter(x, FLIP_SQUARE, mode="constant", cval=1)
+        return ndimage.maximum_filter(e, FLIP_SQUARE, mode="constant", cval=1)
 
     def kept(side, predicted):
         # the move stays where it joins a wide part of its side, or next to a structure
         # that the prediction itself holds thin (a wire of a renderer's exact depth,
         # whose anti-aliased rim the colour rightly moves)
-        thin = predicted & ~ndimage.binary_opening(predicted, square, border_value=1)
-        return (ndimage.binary_opening(side, square, border_value=1) | predicted
-                | ndimage.binary_dilation(thin, ring))
+        thin = predicted & ~opening(predicted)
+        return (opening(side) | predicted
+                | ndimage.maximum_filter(thin, 3, mode="constant", cval=0))
 
     moved = near != m
     out = near.copy()
