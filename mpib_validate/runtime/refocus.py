@@ -30,7 +30,7 @@ import numpy as np
 from mpib_validate.runtime.io.camera_header import HeaderCamera, read_camera
 from mpib_validate.runtime.compositor.composite import render_subapertures
 from mpib_validate.runtime.io.exr import ExrError, find_pass, read_exr, rgba_from
-from mpib_validate.runtime.layers.layered import composite_over, group_disparity, layers_from_layered_passes
+from mpib_validate.runtime.layers.layered import composite_over, group_layers, layers_from_layered_passes
 from mpib_validate.runtime.layers.passes import (DEFAULT_FAR_LIMIT, PassError, depth_to_disparity, layers_from_passes,
                                                 passes_disparity)
 from mpib_validate.runtime.request import RefocusRequest
@@ -379,9 +379,7 @@ def build_mpi(request: RefocusRequest, progress=None) -> BuiltMPI:
             raise PassError(f"{passes.colour_source}: a layered input holds what lies behind "
                             f"the foreground; no background render is needed")
         # layered input: its own film channel unless the farthest group is opaque
-        groups = [(g[0], g[1], group_disparity(g[2], g[-1] if len(g) > 3 else g[1], far_limit,
-                                               f"{passes.depth_source} group {k}"))
-                  for k, g in enumerate(passes.groups)]
+        groups = group_layers(passes.groups, far_limit, passes.depth_source)
         mpi, info = layers_from_layered_passes(groups, A, settings, progress=progress)
         opaque = mpi.channels == 4
         D = np.concatenate([g[2][g[1] > 0] for g in groups] + [D.ravel()])

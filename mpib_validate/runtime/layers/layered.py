@@ -73,6 +73,24 @@ def group_disparity(depth: np.ndarray, alpha: np.ndarray, far_limit: float = DEF
     return D
 
 
+def group_layers(groups, far_limit: float = DEFAULT_FAR_LIMIT, source: str = "depth") -> list:
+    """The depth groups of a layered input (``Passes.groups`` of
+    :func:`mpib_validate.runtime.refocus.load_layered_passes`: far to near, ``(colour,
+    alpha, depth[, coverage])``) as :func:`layers_from_layered_passes` takes them:
+    ``(colour, alpha, disparity)``, the disparity :func:`group_disparity` of the depth
+    over the group's own coverage (``coverage`` where given: the farthest group with the
+    world added in, opaque, whose world pixels are at disparity 0)."""
+    return [(g[0], g[1], group_disparity(g[2], g[-1] if len(g) > 3 else g[1], far_limit,
+                                         f"{source} group {k}"))
+            for k, g in enumerate(groups)]
+
+
+def far_group_opaque(alpha: np.ndarray) -> bool:
+    """Whether the farthest group's ``alpha`` covers every pixel (at least
+    :data:`OPAQUE_ALPHA`): then the MPI needs no film channel."""
+    return bool(np.all(np.clip(np.asarray(alpha, np.float64), 0.0, 1.0) >= OPAQUE_ALPHA))
+
+
 def composite_over(groups) -> tuple[np.ndarray, np.ndarray]:
     """The group layers ``(premultiplied colour, alpha, ...)`` composited with "over",
     far to near: ``(colour (H, W, 3) premultiplied, alpha (H, W))``, which is the
@@ -114,8 +132,8 @@ def layers_from_layered_passes(groups, blur_parameter: float,
         if np.ndim(P) != 3 or np.shape(P)[2] < 3:
             raise PassError(f"layered passes: group {k}'s colour must be (H, W, 3)")
     P0, a0, D0 = (np.asarray(v, np.float64) for v in groups[0])
+    opaque = far_group_opaque(a0)
     a0 = np.clip(a0, 0.0, 1.0)
-    opaque = bool(np.all(a0 >= OPAQUE_ALPHA))
     # the farthest group as a single-pass input: the film alpha rides as a premultiplied
     # extra channel, the world (a0 = 0, Z at infinity) is its disparity-0 content
     far_colour = P0[..., :3] if opaque else np.concatenate([P0[..., :3], a0[..., None]], -1)

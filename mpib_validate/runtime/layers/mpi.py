@@ -514,18 +514,29 @@ class LayerPlan:
                 out[k] = self.slab_of[2 * k - 1] != self.slab_of[2 * k + 1]
         return out
 
-    def tile_area(self, D: np.ndarray, T: int = TILE_PX) -> tuple[np.ndarray, np.ndarray]:
+    def tile_area(self, D: np.ndarray, T: int = TILE_PX,
+                  content: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Pixels of the canvas-aligned storage tiles (side ``T``) that may hold each
         plane's content for a frame of disparities ``D`` (no margin): a tile holds plane
         ``k`` when its disparity range reaches the interval around ``d_k`` (every pixel
         is shared by the two planes around its disparity). A :meth:`straddling` plane
-        stores the tiles of each of its two intervals. Returns the tile pixels per plane
-        and the number of layers on it counted so (1 or 2)."""
+        stores the tiles of each of its two intervals. ``content``: ``(H, W)`` bool, the
+        pixels that hold content (a sheet's ``alpha > 0``; default all): the range of a
+        tile is over those, and a tile with none holds no plane. Returns the tile pixels
+        per plane and the number of layers on it counted so (1 or 2)."""
         H, W = D.shape
         n = self.plane_count
         ny, nx = -(-H // T), -(-W // T)
-        v = np.pad(D, ((0, ny * T - H), (0, nx * T - W)), mode="edge").reshape(ny, T, nx, T)
-        lo, hi = v.min(axis=(1, 3)).ravel(), v.max(axis=(1, 3)).ravel()
+        pad = ((0, ny * T - H), (0, nx * T - W))
+        if content is None:
+            v = np.pad(D, pad, mode="edge").reshape(ny, T, nx, T)
+            lo, hi = v.min(axis=(1, 3)).ravel(), v.max(axis=(1, 3)).ravel()
+        else:
+            c = np.pad(np.asarray(content, bool), pad).reshape(ny, T, nx, T)
+            v = np.pad(D, pad, mode="edge").reshape(ny, T, nx, T)
+            lo = np.where(c, v, np.inf).min(axis=(1, 3)).ravel()
+            hi = np.where(c, v, -np.inf).max(axis=(1, 3)).ravel()
+            lo, hi = lo[lo <= hi], hi[lo <= hi]
         s_lo, s_hi = self.reached(lo, hi)
         diff = np.bincount(s_lo, minlength=n + 1) - np.bincount(s_hi + 1, minlength=n + 1)
         union = np.cumsum(diff[:n]).astype(np.float64) * T * T
