@@ -29,7 +29,13 @@ builder's plan and follows what ``composite`` does:
   threads at once (counted as the largest sum over that many consecutive layers), with
   :data:`HELD_OUTPUTS` more blurred outputs waiting for their "over", plus the kernel,
   the accumulators and the kernel cache;
-- the per-pixel working sets of the layer builder and of the output writers.
+- the per-pixel working sets of the layer builder and of the output writers;
+- a layered input (one view layer per depth group,
+  :mod:`~mpib_validate.runtime.layers.layered`): the arrays its passes hold (every
+  group's colour, alpha and depth, :func:`held_bytes`), the planes planned over every
+  group's content, the farthest group built as a single-pass input (the only one with
+  edges and a fill), and per nearer group its disparity, its dense sheet and its
+  content's shares of the cut.
 
 The byte counts per pixel are measured (``tests/test_budget.py`` checks the estimate
 against the peak resident memory of real runs), not derived. Tracing
@@ -82,6 +88,12 @@ WRITE_BYTES_PER_PX = 110
 #: Bytes per pixel of the inputs kept during the work (colour float32, depth and
 #: disparity float64).
 INPUT_BYTES_PER_PX = 28
+#: Bytes per pixel of content (alpha > 0) of a layered input's nearer groups while the
+#: sheets are cut, beside the layers it makes: its value in the plan's disparities (8 B)
+#: and its shares (12 B each, at most two). Measured (numpy's own allocations, traced,
+#: 1536x1152, 5 groups): the cut's peak above its start, less the layers, grows 7 B/px
+#: from 0.36 to 1.65 frames of nearer content; 2 groups, 0.07 to 0.45 frames: 26 B/px.
+LAYERED_CUT_BYTES_PER_PX = 24
 #: Bytes per sample of a lens sample set while it is made (Sobol points, the
 #: concentric map's temporaries, the kept float64 arrays).
 SAMPLE_BYTES = 160
@@ -201,15 +213,29 @@ def check_pixels(width: int, height: int, what: str) -> None:
 # Refocusing
 
 
-def _blocks(D: np.ndarray, side: int = 256):
+def _blocks(D: np.ndarray, side: int = 256, content: np.ndarray | None = None):
     """Per-block minimum and maximum of ``D`` on a grid of at most ``side x side``
-    blocks; returns ``(lo, hi, block)`` with the block size in pixels."""
+    blocks; returns ``(lo, hi, block)`` with the block size in pixels. ``content``:
+    over those pixels only (a block with none: ``lo = inf``, ``hi = -inf``)."""
     H, W = D.shape
     b = max(1, math.ceil(max(H, W) / side))
     ny, nx = -(-H // b), -(-W // b)
-    pad = np.pad(D, ((0, ny * b - H), (0, nx * b - W)), mode="edge")
-    v = pad.reshape(ny, b, nx, b)
-    return v.min(axis=(1, 3)), v.max(axis=(1, 3)), b
+    pad = ((0, ny * b - H), (0, nx * b - W))
+    v = np.pad(D, pad, mode="edge").reshape(ny, b, nx, b)
+    if content is None:
+        return v.min(axis=(1, 3)), v.max(axis=(1, 3)), b
+    c = np.pad(np.asarray(content, bool), pad).reshape(ny, b, nx, b)
+    return (np.where(c, v, np.inf).min(axis=(1, 3)), np.where(c, v, -np.inf).max(axis=(1, 3)),
+            b)
+
+
+def _reached(plan, lo, hi):
+    """:meth:`LayerPlan.reached` of block ranges, with a block of no content (``lo >
+    hi``) reaching none (``(n, n - 1)``: nothing in :func:`_presence_extent`'s counts)."""
+    n = plan.plane_count
+    s_lo, s_hi = plan.reached(lo, hi)
+    empty = lo > hi
+    return np.where(empty, n, s_lo), np.where(empty, n - 1, s_hi)
 
 
 def _presence_extent(s_lo: np.ndarray, s_hi: np.ndarray, n: int, axis: int):
@@ -228,24 +254,26 @@ def _presence_extent(s_lo: np.ndarray, s_hi: np.ndarray, n: int, axis: int):
     return first, last
 
 
-def _plane_boxes(D: np.ndarray, plan, A: float, jump: float):
+def _plane_boxes(D: np.ndarray, plan, A: float, jump: float, nearer=()):
     """Estimated ``(height, width)`` of each plane's content box (see the module
     docstring) for the builder's ``plan``
     (:class:`~mpib_validate.runtime.layers.mpi.LayerPlan`) of the disparities ``D``, and
     the pixels each plane stores: its tile area (:meth:`LayerPlan.tile_area`) where a
     layer is kept as tiles (:data:`mpi.TILED_FILL_MAX` of its box or less) and nothing
     grows it (the hidden-background fill behind a depth edge, whose extent is known
-    only as a box), else its box."""
+    only as a box), else its box.
+
+    ``nearer``: the nearer groups of a layered input, ``(disparity (H, W), content (H,
+    W) bool)`` each, whose sheets are cut into the same planes without a fill (``D`` is
+    then the farthest group's, the only one filled): a plane's box is the bounding box
+    of every group's content on it, its tiles the sum of each group's (an upper bound
+    where two groups share a tile of one plane)."""
     from mpib_validate.runtime.layers.mpi import TILED_FILL_MAX
 
     H, W = D.shape
     n = plan.plane_count
     lo, hi, b = _blocks(D)
     s_lo, s_hi = plan.reached(lo, hi)
-    r0, r1 = _presence_extent(s_lo, s_hi, n, 0)
-    c0, c1 = _presence_extent(s_lo, s_hi, n, 1)
-    h = np.where(r1 >= r0, np.minimum((r1 - r0 + 1) * b, H), 0)
-    w = np.where(c1 >= c0, np.minimum((c1 - c0 + 1) * b, W), 0)
     # hidden background behind depth edges: the fill reaches A (d_near - d_far) from
     # each 4-neighbour jump larger than ``jump`` (the layer builder's edges), so the
     # planes of a block holding such a jump may grow by that much (a smooth gradient,
@@ -261,12 +289,31 @@ def _plane_boxes(D: np.ndarray, plan, A: float, jump: float):
                 - np.bincount(s_hi[sel] + 1, minlength=n + 1))
         grow = np.where(np.cumsum(diff[:n]) > 0, 2.0 * level, grow)
         level *= 2.0
-    grow = np.minimum(grow, top)
-    g = np.ceil(grow).astype(np.int64)
-    h = np.where(h > 0, np.minimum(h + 2 * g, H), 0)
-    w = np.where(w > 0, np.minimum(w + 2 * g, W), 0)
+    g = np.ceil(np.minimum(grow, top)).astype(np.int64)
+    # each plane's extent (block lines, grown by its reach): first and one past the last
+    # pixel row and column, over the groups that reach it
+    spans = []
+    for axis, size in ((0, H), (1, W)):
+        first, last = _presence_extent(s_lo, s_hi, n, axis)
+        on = last >= first
+        start = np.where(on, first * b - g, np.iinfo(np.int64).max)
+        end = np.where(on, (last + 1) * b + g, np.iinfo(np.int64).min)
+        spans.append([start, end, on])
+    for Dk, ck in nearer:
+        k_lo, k_hi = _reached(plan, *_blocks(Dk, content=ck)[:2])
+        for axis, span in enumerate(spans):
+            first, last = _presence_extent(k_lo, k_hi, n, axis)
+            on = last >= first
+            span[0] = np.where(on, np.minimum(span[0], first * b), span[0])
+            span[1] = np.where(on, np.maximum(span[1], (last + 1) * b), span[1])
+            span[2] = span[2] | on
+    (r_start, r_end, r_on), (c_start, c_end, c_on) = spans
+    h = np.where(r_on, np.minimum(r_end - r_start, H), 0)
+    w = np.where(c_on, np.minimum(c_end - c_start, W), 0)
     box = h.astype(np.float64) * w
     area, count = plan.tile_area(D)
+    for Dk, ck in nearer:
+        area = area + plan.tile_area(Dk, content=ck)[0]
     # the fill behind the jumps of a block lands on that block's planes, within its
     # reach: the block grown by it on every side
     sel = reach > 0
@@ -364,25 +411,60 @@ def _blur_bytes(h: int, w: int, rho: float, H: int, W: int, composite) -> tuple[
 def estimate_request(request, threads: int | None = None) -> Estimate:
     """Estimated peak memory of :func:`mpib_validate.runtime.refocus.refocus` of a
     :class:`~mpib_validate.runtime.request.RefocusRequest` (:func:`refocus_estimate` of its
-    disparity, ``A``, ``d_f`` and preset, with its background render if any)."""
+    disparity, ``A``, ``d_f`` and preset, with its background render if any; for a
+    layered input, of its depth groups as the builder takes them, with the arrays the
+    passes hold)."""
+    from mpib_validate.runtime.layers.layered import group_layers
     from mpib_validate.runtime.layers.passes import passes_disparity
 
-    D = passes_disparity(request.passes, request.far_limit)
+    passes = request.passes
+    D = passes_disparity(passes, request.far_limit)
+    groups = held = None
+    if passes.groups is not None:
+        groups = group_layers(passes.groups, request.far_limit, passes.depth_source)
+        held = held_bytes(passes) + D.nbytes  # and the disparity the refocus derives
     return refocus_estimate(D, request.blur_parameter, request.focus_disparity,
                             request.preset, background=request.background is not None,
-                            threads=threads, aperture=request.aperture)
+                            threads=threads, aperture=request.aperture, groups=groups,
+                            held=held)
+
+
+def held_bytes(passes) -> int:
+    """Bytes of the arrays ``passes`` (:class:`mpib_validate.runtime.refocus.Passes`) hold,
+    each counted once with whatever it is a view of (a layered input's group colour is
+    a view of its RGBA)."""
+    arrays = [passes.colour, passes.depth, passes.alpha, passes.disparity]
+    arrays += [a for g in (passes.groups or ()) for a in g]
+    bases = {}
+    for a in arrays:
+        while isinstance(a, np.ndarray) and isinstance(a.base, np.ndarray):
+            a = a.base
+        if isinstance(a, np.ndarray):
+            bases[id(a)] = a.nbytes
+    return int(sum(bases.values()))
 
 
 def refocus_estimate(disparity: np.ndarray, blur_parameter: float, focus_disparity: float,
                      preset, background: bool = False,
-                     threads: int | None = None, aperture=None) -> Estimate:
+                     threads: int | None = None, aperture=None, groups=None,
+                     held: int | None = None) -> Estimate:
     """Estimated peak memory of ``refocus.refocus`` on a disparity map (1/scene-unit,
     0 = infinitely far) with the blur parameter ``A`` (px per unit disparity), focus
     ``d_f`` and a preset's settings (a :class:`~mpib_validate.runtime.presets.Preset`),
     blurring on ``threads`` threads (default: as many as the compositor uses here,
     ``composite.blur_threads()``). Costs a few passes over the disparity. ``aperture``:
     the lens's shape (``camera.Aperture``); its reach ``A extent`` (``extent = max(1,
-    1/ratio)``, what the refocus builds and blurs with) stands for ``A``."""
+    1/ratio)``, what the refocus builds and blurs with) stands for ``A``.
+
+    ``groups``: a layered input's depth groups, far to near, ``(colour, alpha,
+    disparity)`` as :func:`~mpib_validate.runtime.layers.layered.layers_from_layered_passes`
+    takes them (:func:`~mpib_validate.runtime.layers.layered.group_layers`): the planes
+    are then planned over every group's content, the farthest group is built (edges,
+    fill) as a single-pass input and each nearer one adds its dense sheet (float64
+    colour and alpha) and its content's shares of the cut
+    (:data:`LAYERED_CUT_BYTES_PER_PX`).
+    ``held``: bytes of the inputs the refocus keeps throughout (default
+    :data:`INPUT_BYTES_PER_PX` per pixel: a single-pass colour and depth)."""
     from mpib_validate.runtime.compositor.composite import blur_threads
     from mpib_validate.runtime.compositor.kernels import KERNEL_CACHE_BYTES
     from mpib_validate.runtime.layers.passes import layer_plan
@@ -393,12 +475,32 @@ def refocus_estimate(disparity: np.ndarray, blur_parameter: float, focus_dispari
     A = float(blur_parameter) * (1.0 if aperture is None else aperture.extent)
     p = preset
     px = H * W
+    kept = INPUT_BYTES_PER_PX * px if held is None else int(held)
+    nearer, extra_build, extra_cut = (), 0.0, 0.0
+    values = D
+    if groups is not None:
+        from mpib_validate.runtime.layers.layered import far_group_opaque
+
+        # the farthest group is the single-pass input; the nearer ones are sheets of
+        # their content (alpha > 0), cut into the planes of every group's content
+        D = np.asarray(groups[0][2], np.float64)
+        nearer = [(np.asarray(g[2], np.float64), np.asarray(g[1]) > 0) for g in groups[1:]]
+        values = np.concatenate([D.ravel()] + [Dk[ck] for Dk, ck in nearer])
+        K = 3 if far_group_opaque(groups[0][1]) else 4  # colour channels of the sheets
+        content = sum(int(np.count_nonzero(ck)) for _, ck in nearer)
+        # the group disparities (8 B/px each) and, with a film channel, the farthest
+        # group's colour and alpha copy (8 K B/px) through the whole build; the nearer
+        # groups' dense sheets (colour 8 K, alpha 8 B/px) and their shares through the cut
+        extra_build = (8 * len(groups) + (0 if K == 3 else 8 * K)) * px
+        extra_cut = (extra_build + (8 * K + 8) * len(nearer) * px
+                     + LAYERED_CUT_BYTES_PER_PX * content)
     # the builder's plan for these disparities (an upper bound: its content is a subset
     # of these values)
-    plan = layer_plan(D, A, p.passes, exact=False, max_planes=MAX_PLANES_PLACED)
+    plan = layer_plan(values, A, p.passes, exact=False, max_planes=MAX_PLANES_PLACED)
     n_planes = plan.plane_count
-    largest = float(A * max(abs(float(D.max()) - focus_disparity),
-                            abs(float(D.min()) - focus_disparity)))
+    largest = float(A * max(abs(float(values.max()) - focus_disparity),
+                            abs(float(values.min()) - focus_disparity)))
+    del values
     if plan.planes is None:  # too many to place: bookkeeping, one full-frame blur
         rho = np.array([largest])
         hs, ws = np.array([H]), np.array([W])
@@ -406,7 +508,7 @@ def refocus_estimate(disparity: np.ndarray, blur_parameter: float, focus_dispari
         layers = PLANE_BYTES * n_planes + 16 * px
     else:
         rho = A * (plan.planes - focus_disparity)
-        hs, ws, tiled = _plane_boxes(D, plan, A, p.passes.jump_px / A)
+        hs, ws, tiled = _plane_boxes(D, plan, A, p.passes.jump_px / A, nearer)
         layers = int(16 * np.sum(tiled)
                      ) + PLANE_BYTES * n_planes
         as_tiles = tiled < hs.astype(np.float64) * ws
@@ -433,8 +535,9 @@ def refocus_estimate(disparity: np.ndarray, blur_parameter: float, focus_dispari
         cut = (CUT_BYTES_PER_PX + CUT_BYTES_PER_EDGE_PX * edge) * px
     else:
         edges_phase, cut = BUILD_SMOOTH_BYTES_PER_PX * px, CUT_SMOOTH_BYTES_PER_PX * px
+    edges_phase, cut = edges_phase + extra_build, cut + extra_cut
     parts = {
-        "inputs": (INPUT_BYTES_PER_PX + (16 if background else 0)) * px,
+        "inputs": kept + (16 if background else 0) * px,
         "layers": layers,
         "layer building": int(max(edges_phase, cut)),
         "blurs": _concurrent(works, threads) + HELD_OUTPUTS * held,
