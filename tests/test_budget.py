@@ -139,11 +139,10 @@ def test_layered_estimate_tracks_the_measured_peak(tmp_path):
     estimate (its inputs and its work) against the resident memory the refocus adds to
     the process before the input is read (the inputs it keeps, then the peak of the
     work; the EXR read's own peak is checked from the header before, and excluded).
-    Measured (2 cores), 5 groups: estimate / peak 0.91 at 1024x768 here; 0.73 to 0.93
-    at 512x384 to 1024x768 and 0.91 to 1.10 at 1536x1152 and 3072x2304 over four
-    scenes of 2 to 5 groups (the allocator keeps what the build freed resident at the
-    smaller sizes). Before the layered input was counted: 0.60 here, 0.49 to 0.76 with
-    larger discs. The same bounds as the single-pass cases: 0.7 to 1.6."""
+    Measured (2 cores): estimate / peak 0.91 here (5 groups, 1024x768); 0.73 to 1.11 at
+    512x384 to 1024x768 and 0.91 to 1.10 at 1536x1152 and 3072x2304 over five scenes of
+    2 to 5 groups (at the smaller sizes the allocator keeps what the build freed
+    resident). The same bounds as the single-pass cases: 0.7 to 1.6."""
     path = tmp_path / "layered.exr"
     _layered_exr(path, 5, 1024, 768)
     r = subprocess.run([sys.executable, "-c", MEASURE_LAYERED, str(path), "40",
