@@ -47,6 +47,7 @@ def main(argv=None) -> int:
         print("time_nodegroup: --max-radius must be > 0 and --rounds >= 1", file=sys.stderr)
         return 2
 
+    from mpib_validate.blender.nodegroup_run import run_on_passes
     from mpib_validate.runtime.blender import nodegroup as ng
     from mpib_validate.blender.scenes import lens, load_scene
     from mpib_validate.baselines.defocus_node import defocus
@@ -91,7 +92,7 @@ def main(argv=None) -> int:
                 defocus(colour, depth, cam, timing=False, info=info)
                 t = info["total_seconds"]
             else:
-                t = ng.run_on_passes(image, depth, graph if name == "group" else empty,
+                t = run_on_passes(image, depth, graph if name == "group" else empty,
                                      values)["seconds"]
             rows[name].append(t)
             print(f"round {r}: {name} {t:.2f} s (call {time.perf_counter() - t0:.1f} s)",

@@ -17,6 +17,7 @@ import sys
 import numpy as np
 import pytest
 
+from mpib_validate.blender.nodegroup_run import run_on_passes
 from mpib_validate.runtime.blender import nodegroup as ng
 from mpib_validate.runtime.camera import DISK, Aperture
 
@@ -182,7 +183,7 @@ def _node_footprints(aperture, side, group_aperture, blur="convolve", spp=1024):
     if not spec.shaped:  # a disk's group has no aperture inputs
         values = {k: v for k, v in values.items() if not k.startswith("Aperture")}
     graph = ng.describe(spec)
-    out = ng.run_on_passes(sharp, z, graph, values)["Image"]
+    out = run_on_passes(sharp, z, graph, values)["Image"]
     model = ng.evaluate(graph, sharp, z, values)["Image"]
     lum = lambda a: np.asarray(a[..., :3], np.float64).mean(-1)  # noqa: E731
     rows = compare(lum(out), lum(dof), centres, step, sizes, aperture.blades)

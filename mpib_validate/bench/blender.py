@@ -241,7 +241,8 @@ def node_group(passes, spec, A: float):
     Convolve blur, Bokeh Blur for slices of small radius at this focus), rendered by Blender's compositor on the same passes; its own time
     (the render op of the compositing tree)."""
     from mpib_validate.blender.scenes import lens
-    from mpib_validate.runtime.blender.nodegroup import describe, run_on_passes, spec_from_render
+    from mpib_validate.blender.nodegroup_run import run_on_passes
+    from mpib_validate.runtime.blender.nodegroup import describe, spec_from_render
 
     c = lens(spec)
     graph = describe(spec_from_render(passes.depth, A, blur="convolve",
