@@ -47,13 +47,13 @@ from __future__ import annotations
 
 import functools
 import math
-import os
 import time
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from mpib_validate.runtime.compositor import kernels as _k
+from mpib_validate.runtime.cores import available_cores as _cores
 from mpib_validate.runtime.layers import mpi as _M
 from mpib_validate.runtime.layers.mpi import MPI, Layer
 
@@ -579,14 +579,6 @@ def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
     if progress is not None:
         progress(1.0)
     return acc, (cmax if mpi.colour_max is None else mpi.colour_max)
-
-
-def _cores() -> int:
-    """Cores available to the process."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
 
 
 def blur_threads() -> int:
