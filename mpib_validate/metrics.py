@@ -217,6 +217,15 @@ def sharp_remnants(output, reference, disparity, blur_parameter: float,
     the reference is a render that must be smooth there (the exact depth's, or the
     unrefined one's for a photograph), ``disparity`` the map that says where the blur
     is (the input's for a photograph)."""
+    must = must_blur(disparity, blur_parameter, focus_disparity, blur_px)
+    rem = must & (thin_structure(reference) < smooth) & (thin_structure(output) > keep)
+    return rem, must
+
+
+def must_blur(disparity, blur_parameter: float, focus_disparity: float,
+              blur_px: float = REMNANT_BLUR_PX) -> np.ndarray:
+    """Boolean ``(H, W)``: pixels whose whole 5x5 window ``disparity`` (or every map of a
+    tuple of them) blurs by more than ``blur_px``, ``min_5x5 A |d - d_f| > blur_px``."""
     from scipy import ndimage
 
     maps = disparity if isinstance(disparity, (tuple, list)) else (disparity,)
@@ -224,8 +233,51 @@ def sharp_remnants(output, reference, disparity, blur_parameter: float,
     for d in maps:
         r = blur_parameter * np.abs(np.asarray(d, np.float64) - focus_disparity)
         must &= ndimage.minimum_filter(r, 5, mode="nearest") > blur_px
-    rem = must & (thin_structure(reference) < smooth) & (thin_structure(output) > keep)
-    return rem, must
+    return must
+
+
+#: :func:`step_edges`: a pixel is on a step when its central-difference gradient is
+#: above this share of the range of its 5x5 window (linear values, per channel). A step
+#: (or one anti-aliased over a pixel) gives 1/2; a profile that is smooth over 5 px, as a
+#: disk blur of radius 6 px or more leaves (its slope varies by 6 % across 5 px), gives
+#: about 1/4 along an axis and less along a diagonal; a blurred ramp from black seen
+#: through the sRGB curve stays below 0.37.
+EDGE_RATIO = 0.4
+
+
+def step_edges(img: np.ndarray, floor: float = REMNANT_KEEP) -> np.ndarray:
+    """Boolean ``(H, W)``: pixels of a display-encoded (sRGB, [0, 1]) image that lie on
+    a step: ``|grad c| > EDGE_RATIO (max_5x5 c - min_5x5 c)`` in the linear values ``c``
+    of some channel, where that channel's 5x5 range of display values is above
+    ``floor`` (below it, 8-bit levels and noise)."""
+    from scipy import ndimage
+
+    from mpib_validate.runtime.io.colour import srgb_to_linear
+
+    v = _rgb(img)
+    c = srgb_to_linear(np.clip(v, 0.0, 1.0))
+    gy, gx = np.gradient(c, axis=(0, 1))
+    grad = np.hypot(gx, gy)
+    size = (5, 5, 1)
+    span = ndimage.maximum_filter(c, size) - ndimage.minimum_filter(c, size)
+    span_d = ndimage.maximum_filter(v, size) - ndimage.minimum_filter(v, size)
+    return ((grad > EDGE_RATIO * span) & (span_d > floor)).any(axis=-1)
+
+
+def sharp_edges(output, reference, disparity, blur_parameter: float,
+                focus_disparity: float, blur_px: float = REMNANT_BLUR_PX):
+    """Sharp edges inside the blur: ``(edges, must_blur)``, boolean ``(H, W)``. A lens
+    blurs every edge in a region that :func:`must_blur` holds by more than ``blur_px``,
+    so a step there (:func:`step_edges`) is wrong unless ``reference`` has one within a
+    pixel (its own quantisation, noise or a misplaced blur of the same kind). The step
+    edges that :func:`sharp_remnants`' top-hat does not count: a strip of background
+    kept on a near side, or a hidden layer cut in two at different depths, seen through a
+    blurred occluder. Arguments as for :func:`sharp_remnants`."""
+    from scipy import ndimage
+
+    must = must_blur(disparity, blur_parameter, focus_disparity, blur_px)
+    theirs = ndimage.binary_dilation(step_edges(reference), np.ones((3, 3), bool))
+    return must & step_edges(output) & ~theirs, must
 
 
 # --------------------------------------------------------------------------------------

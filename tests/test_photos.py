@@ -433,6 +433,38 @@ def test_sharp_remnants_see_a_line_and_not_an_edge():
     assert not must2[20, 40] and must2[20, 10] and rem2.sum() == 2 * (30 - 2 - 10)
 
 
+def test_sharp_edges_see_a_step_in_the_blur_and_not_a_blurred_one():
+    """A step inside the must-blur region is a sharp edge; the same step blurred by a
+    disk of 6 px is not, nor is a step from black seen through the sRGB curve, nor one
+    that the reference has too, nor one in focus."""
+    from scipy import ndimage
+
+    from mpib_validate.metrics import sharp_edges, step_edges
+    from mpib_validate.runtime.io.colour import linear_to_srgb
+
+    y, x = np.mgrid[-6:7, -6:7]
+    disk = ((x ** 2 + y ** 2) <= 36).astype(float)
+    disk /= disk.sum()
+
+    def blurred(lin):
+        return np.stack([ndimage.convolve(lin[..., c], disk, mode="nearest")
+                         for c in range(3)], -1)
+
+    lin = np.full((48, 64, 3), 0.05)
+    lin[:, 32:] = 0.4
+    black = np.zeros((48, 64, 3))
+    black[:, 32:] = 1.0
+    step, smooth = linear_to_srgb(lin), linear_to_srgb(blurred(lin))
+    assert step_edges(step).sum() == 2 * 48  # the two columns either side of the step
+    assert not step_edges(smooth).any()
+    assert not step_edges(linear_to_srgb(blurred(black))).any()
+    D = np.full((48, 64), 0.9)  # A |d - d_f| = 20 px everywhere
+    edges, must = sharp_edges(step, smooth, D, 40.0, 0.4)
+    assert must.all() and edges.sum() == 2 * 48
+    assert not sharp_edges(step, step, D, 40.0, 0.4)[0].any()  # the reference's own
+    assert not sharp_edges(step, smooth, D, 40.0, 0.85)[0].any()  # in focus
+
+
 def test_remnant_table_and_crops_on_one_shipped_photograph(tmp_path):
     """The photos suite's remnant part on scikit-image's cat (451x300): a row per focus,
     counts within their must-blur regions, the crops figure with four columns."""
@@ -445,6 +477,8 @@ def test_remnant_table_and_crops_on_one_shipped_photograph(tmp_path):
     for row in r["rows"]:
         assert 0 <= row["remnants_input"] <= row["must_blur_input"] > 0
         assert 0 <= row["remnants_both"] <= row["must_blur_both"] <= row["must_blur_input"]
+        assert 0 <= row["edges_both"] <= row["must_blur_both"]
+        assert 0 <= row["edges_true"] <= row["must_blur_true"]
         assert 0 <= row["remnants_true"] <= row["must_blur_true"] > 0
         assert row["psnr_guided"] > 30 and row["psnr_off"] > 30
     with Image.open(tmp_path / "remnants.png") as im:

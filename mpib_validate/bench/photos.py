@@ -471,7 +471,7 @@ def photo_figure(path: Path, crop: int = 80) -> dict:
     from mpib_validate.runtime.compositor.composite import composite
     from mpib_validate.runtime.io.atomic import atomic_path
     from mpib_validate.runtime.io.preview import to_uint8
-    from mpib_validate.runtime.layers.passes import PassesSettings, layers_from_passes
+    from mpib_validate.runtime.layers.passes import layers_from_passes
     from mpib_validate.runtime.presets import PRESETS
     from scipy import ndimage
 
@@ -617,7 +617,11 @@ def _summarise(result):
             f"{summed('remnants_both', 'must_blur_both')}, where the input map blurs "
             f"{summed('remnants_input', 'must_blur_input')}; against the true-disparity "
             f"render {summed('remnants_true', 'must_blur_true')}, refinement off "
-            f"{sum(r['remnants_true_off'] for r in rows)}.")
+            f"{sum(r['remnants_true_off'] for r in rows)}; sharp edges inside the blur "
+            f"(steps the reference does not have) {sum(r.get('edges_both', 0) for r in rows)} "
+            f"against the unrefined output, {sum(r.get('edges_true', 0) for r in rows)} "
+            f"against the truth (refinement off "
+            f"{sum(r.get('edges_true_off', 0) for r in rows)}).")
     c = result.get("refine_cost")
     if c:
         heads.append(f"guided refinement at {c['width']}x{c['height']}: {c['refine_cpu_s']:.2f} "
