@@ -551,6 +551,9 @@ def test_scope_scores_and_targets_on_a_synthetic_pair():
     assert s["psnr_ob_scoped"] > metrics.psnr(truth, np.clip(out, 0, 1), mask) + 10
     assert math.isclose(s["scoped_fraction"], keep.mean())
     assert s["remnants"] == 14 and s["must_blur"] > 0
+    # the wire's hard sides and the line's flanks are steps the smooth truth does not have
+    assert s["edges"] > 0
+    assert scope_scores(truth, truth + 0.01, mask, ex, D, A, d_f)["edges"] == 0
     rows = [{"scene": sc, "method": m, "psnr_ob": ob, "psnr_ob_scoped": sv, "scoped_fraction": 0.5}
             for sc, vals in (("a", (30.0, 28.0, 23.0)), ("b", (30.0, 26.0, 23.0)))
             for m, sv, ob in zip(("exact", "guided", "node"), vals, (30.0, 20.0, 18.0))]

@@ -155,7 +155,9 @@ def scope_scores(truth, out, mask, exclusion, disparity, A: float, d_f: float) -
       sRGB-encoded, the display values its thresholds are in), and
       ``must_blur_smooth``: the must-blur pixels where the truth itself is smooth
       (3x3 top-hat below :data:`metrics.REMNANT_SMOOTH`), the only ones that can count:
-      a truth's Monte Carlo noise hides the rest."""
+      a truth's Monte Carlo noise hides the rest;
+    - ``edges``: :func:`metrics.sharp_edges`, steps inside the same region that the
+      truth does not have within a pixel."""
     from mpib_validate.runtime.io.preview import srgb_encode
 
     t = np.clip(np.asarray(truth, np.float64)[..., :3], 0, 1)
@@ -164,7 +166,8 @@ def scope_scores(truth, out, mask, exclusion, disparity, A: float, d_f: float) -
     te, oe = srgb_encode(t), srgb_encode(o)
     rem, must = metrics.sharp_remnants(oe, te, disparity, A, d_f)
     smooth = must & (metrics.thin_structure(te) < metrics.REMNANT_SMOOTH)
-    return {"psnr_ob_scoped": metrics.psnr(t, o, keep),
+    edges, _ = metrics.sharp_edges(oe, te, disparity, A, d_f)
+    return {"edges": int(edges.sum()),"psnr_ob_scoped": metrics.psnr(t, o, keep),
             "scoped_fraction": float(keep.sum() / max(1, int(mask.sum()))),
             "remnants": int(rem.sum()), "must_blur": int(must.sum()),
             "must_blur_smooth": int(smooth.sum())}
@@ -236,6 +239,7 @@ def remnant_summary(rows, label: str, methods) -> dict:
         n, must = sum(r["remnants"] for r in rs), sum(r["must_blur"] for r in rs)
         out["methods"][m] = {"remnants": n, "must_blur": must,
                              "must_blur_smooth": sum(r["must_blur_smooth"] for r in rs),
+                             "edges": sum(r.get("edges", 0) for r in rs),
                              "percent": 100.0 * n / max(1, must), "scenes": len(rs),
                              "worst": worst["scene"], "worst_remnants": worst["remnants"],
                              "worst_percent": 100.0 * worst["remnants"] / max(1, worst["must_blur"])}
@@ -244,7 +248,8 @@ def remnant_summary(rows, label: str, methods) -> dict:
                            f"disparity blurs by more than {metrics.REMNANT_BLUR_PX:g} px: " +
                            "; ".join(f"{m} {v['remnants']} ({v['percent']:.3f} % of "
                                      f"{v['must_blur']}; worst {v['worst']} "
-                                     f"{v['worst_remnants']}, {v['worst_percent']:.3f} %)"
+                                     f"{v['worst_remnants']}, {v['worst_percent']:.3f} %; "
+                                     f"sharp edges {v['edges']})"
                                      for m, v in out["methods"].items()) + ".")
     return out
 
@@ -295,13 +300,16 @@ def scope_markdown(scope: dict, rem: dict, rows, methods) -> list[str]:
                   f"field where the exact disparity blurs the whole 5x5 window by more than "
                   f"{metrics.REMNANT_BLUR_PX:g} px (sRGB display values); 'smooth' is how many of "
                   "those pixels the truth itself holds smooth enough to count (its noise "
-                  "hides the others). The exact-depth rows are the control.", "",
-                  "| method | remnants | must-blur | smooth in the truth | share | worst scene |",
-                  "|---|---|---|---|---|---|"]
+                  "hides the others). The exact-depth rows are the control. Sharp edges: "
+                  "`metrics.sharp_edges`, steps in the same region that the truth does not "
+                  "have within a pixel.", "",
+                  "| method | remnants | must-blur | smooth in the truth | share | worst scene "
+                  "| sharp edges |",
+                  "|---|---|---|---|---|---|---|"]
         for m, v in rem["methods"].items():
             lines.append(f"| {m} | {v['remnants']} | {v['must_blur']} | {v['must_blur_smooth']} | "
                          f"{v['percent']:.3f} % | {v['worst']} ({v['worst_remnants']}, "
-                         f"{v['worst_percent']:.3f} %) |")
+                         f"{v['worst_percent']:.3f} %) | {v.get('edges', '-')} |")
         lines.append("")
     return lines
 
