@@ -310,10 +310,7 @@ def thin_disparity(disparity: np.ndarray, threshold: float, size: int = SCOPE_TH
     a structure ``size`` px wide or more, and an outline's 1-2 px tip give 0."""
     from scipy import ndimage
 
-    d = np.asarray(disparity, np.float64)
-    white = d - ndimage.grey_opening(d, (size, size), mode="nearest")
-    black = ndimage.grey_closing(d, (size, size), mode="nearest") - d
-    thin = (white > threshold) | (black > threshold)
+    thin = thin_structure(np.asarray(disparity, np.float64), size) > threshold
     if min_pixels > 1 and thin.any():
         lab, n = ndimage.label(thin, structure=np.ones((3, 3), bool))
         big = np.bincount(lab.ravel(), minlength=n + 1) >= min_pixels
