@@ -217,16 +217,10 @@ def _blocks(D: np.ndarray, side: int = 256, content: np.ndarray | None = None):
     """Per-block minimum and maximum of ``D`` on a grid of at most ``side x side``
     blocks; returns ``(lo, hi, block)`` with the block size in pixels. ``content``:
     over those pixels only (a block with none: ``lo = inf``, ``hi = -inf``)."""
-    H, W = D.shape
-    b = max(1, math.ceil(max(H, W) / side))
-    ny, nx = -(-H // b), -(-W // b)
-    pad = ((0, ny * b - H), (0, nx * b - W))
-    v = np.pad(D, pad, mode="edge").reshape(ny, b, nx, b)
-    if content is None:
-        return v.min(axis=(1, 3)), v.max(axis=(1, 3)), b
-    c = np.pad(np.asarray(content, bool), pad).reshape(ny, b, nx, b)
-    return (np.where(c, v, np.inf).min(axis=(1, 3)), np.where(c, v, -np.inf).max(axis=(1, 3)),
-            b)
+    from mpib_validate.runtime.layers.mpi import block_ranges
+
+    b = max(1, math.ceil(max(D.shape) / side))
+    return (*block_ranges(D, b, content), b)
 
 
 def _reached(plan, lo, hi):

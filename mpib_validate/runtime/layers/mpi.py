@@ -524,19 +524,10 @@ class LayerPlan:
         pixels that hold content (a sheet's ``alpha > 0``; default all): the range of a
         tile is over those, and a tile with none holds no plane. Returns the tile pixels
         per plane and the number of layers on it counted so (1 or 2)."""
-        H, W = D.shape
         n = self.plane_count
-        ny, nx = -(-H // T), -(-W // T)
-        pad = ((0, ny * T - H), (0, nx * T - W))
-        if content is None:
-            v = np.pad(D, pad, mode="edge").reshape(ny, T, nx, T)
-            lo, hi = v.min(axis=(1, 3)).ravel(), v.max(axis=(1, 3)).ravel()
-        else:
-            c = np.pad(np.asarray(content, bool), pad).reshape(ny, T, nx, T)
-            v = np.pad(D, pad, mode="edge").reshape(ny, T, nx, T)
-            lo = np.where(c, v, np.inf).min(axis=(1, 3)).ravel()
-            hi = np.where(c, v, -np.inf).max(axis=(1, 3)).ravel()
-            lo, hi = lo[lo <= hi], hi[lo <= hi]
+        lo, hi = (v.ravel() for v in block_ranges(D, T, content))
+        if content is not None:
+            lo, hi = lo[lo <= hi], hi[lo <= hi]  # the tiles that hold content
         s_lo, s_hi = self.reached(lo, hi)
         diff = np.bincount(s_lo, minlength=n + 1) - np.bincount(s_hi + 1, minlength=n + 1)
         union = np.cumsum(diff[:n]).astype(np.float64) * T * T
@@ -552,6 +543,21 @@ class LayerPlan:
             out[k] = per[k - 1] + per[k]
             count[k] = 2
         return out, count
+
+
+def block_ranges(D: np.ndarray, T: int, content: np.ndarray | None = None):
+    """``(lo, hi)``, each ``(ceil(H / T), ceil(W / T))``: the minimum and maximum of ``D``
+    over each ``T x T`` block (the last row and column of blocks padded with the edge
+    values). ``content``: ``(H, W)`` bool, over those pixels only; a block with none has
+    ``lo = inf``, ``hi = -inf``."""
+    H, W = D.shape
+    ny, nx = -(-H // T), -(-W // T)
+    pad = ((0, ny * T - H), (0, nx * T - W))
+    v = np.pad(D, pad, mode="edge").reshape(ny, T, nx, T)
+    if content is None:
+        return v.min(axis=(1, 3)), v.max(axis=(1, 3))
+    c = np.pad(np.asarray(content, bool), pad).reshape(ny, T, nx, T)
+    return np.where(c, v, np.inf).min(axis=(1, 3)), np.where(c, v, -np.inf).max(axis=(1, 3))
 
 
 def plan_layers(planes, split: str = "linear", slab: float = 0.0) -> LayerPlan:
