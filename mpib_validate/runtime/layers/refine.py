@@ -184,8 +184,8 @@ def refine_disparity(colour: np.ndarray, disparity: np.ndarray, blur_parameter: 
         y0, y1, x0, x1 = box
         Y0, Y1 = max(0, y0 - margin), min(D.shape[0], y1 + margin)
         X0, X1 = max(0, x0 - margin), min(D.shape[1], x1 + margin)
-        qb = guided_filter(colour_guide(colour[Y0:Y1, X0:X1]),
-                           m[Y0:Y1, X0:X1].astype(np.float64), guide_radius, eps)
+        qb = guided_filter(colour_guide(colour[Y0:Y1, X0:X1]), m[Y0:Y1, X0:X1],
+                           guide_radius, eps)
         return qb[y0 - Y0:y1 - Y0, x0 - X0:x1 - X0]
 
     boxes = list(_boxes(zone, TILE))
@@ -348,6 +348,7 @@ def _outside_sides(D, band, hi, lo, reach):
     ``2 reach``, which hold every pixel that the answer depends on (up to ties between
     equidistant pixels)."""
     hi_side, lo_side = hi.copy(), lo.copy()
+
     def block(item):
         _, sub, inner = item
         h, l = _outside_sides_box(D[sub], band[sub], hi[sub], lo[sub], reach)
