@@ -110,6 +110,29 @@ def _timed(fn):
     return out, time.perf_counter() - t0
 
 
+def scene_passes(sc):
+    """``(passes, A, d_f)`` of a :class:`SuiteScene`: its ``passes.exr`` and the blur
+    parameter and focus that its camera header gives, as ``mpib refocus`` reads them."""
+    from mpib_validate.runtime.io.camera_header import resolve
+    from mpib_validate.runtime.refocus import load_passes
+
+    path = sc.folder / "passes.exr"
+    passes = load_passes(path)
+    H, W = passes.depth.shape
+    cam = resolve(passes.camera, {}, W, H, path).camera
+    return passes, float(cam.blur_parameter), float(cam.focus_disparity)
+
+
+def timed_refocus(passes, A: float, d_f: float, preset: str):
+    """``(result, seconds)``: the refocus of ``passes`` with a preset, timed after an
+    untimed warm-up run (the kernel caches)."""
+    from mpib_validate.runtime.refocus import refocus
+    from mpib_validate.runtime.request import RefocusRequest
+
+    refocus(RefocusRequest(passes, A, d_f, preset))
+    return _timed(lambda: refocus(RefocusRequest(passes, A, d_f, preset)))
+
+
 def method_images(sc, exact_samples: int = 1024, layered=None, degraded: bool = True) -> dict:
     """``{method: (rgb (H, W, 3), seconds)}`` for one :class:`SuiteScene`; ``layered``:
     the path of its layered render (``layers.exr``), if any; ``degraded``: also the
@@ -119,26 +142,16 @@ def method_images(sc, exact_samples: int = 1024, layered=None, degraded: bool = 
     from mpib_validate.cards.mpi import render_exact
     from mpib_validate.runtime.layers.passes import depth_to_disparity, layers_from_passes
     from mpib_validate.runtime.presets import PRESETS, get_preset
-    from mpib_validate.runtime.refocus import load_layered_passes, load_passes, refocus
-    from mpib_validate.runtime.request import RefocusRequest
+    from mpib_validate.runtime.refocus import load_layered_passes
 
-    from mpib_validate.runtime.io.camera_header import resolve
-
-    path = sc.folder / "passes.exr"
-    passes = load_passes(path)
-    H, W = passes.depth.shape
-    cam = resolve(passes.camera, {}, W, H, path).camera  # as mpib refocus reads it
-    A, d_f = float(cam.blur_parameter), float(cam.focus_disparity)
+    passes, A, d_f = scene_passes(sc)
     out = {}
     for name in PRESETS:
-        refocus(RefocusRequest(passes, A, d_f, name))  # warm-up (kernel caches), untimed
-        res, seconds = _timed(lambda: refocus(RefocusRequest(passes, A, d_f, name)))
+        res, seconds = timed_refocus(passes, A, d_f, name)
         out[f"preset-{name}"] = (premultiplied(res.image), seconds)
         out[f"preset-{name} (normalised)"] = (res.image[..., :3], seconds)
     if layered is not None and Path(layered).is_file():
-        lp = load_layered_passes(layered)
-        refocus(RefocusRequest(lp, A, d_f, "default"))  # warm-up, untimed
-        res, seconds = _timed(lambda: refocus(RefocusRequest(lp, A, d_f, "default")))
+        res, seconds = timed_refocus(load_layered_passes(layered), A, d_f, "default")
         out[LAYERED] = (premultiplied(res.image), seconds)
     import importlib.util
 
@@ -171,17 +184,9 @@ def degraded_part_images(sc) -> dict:
     it: the default preset on the exact depth (timed after a warm-up), the Defocus node
     on the exact depth (when bpy is there), the sharp input, and :func:`degraded_images`."""
     from mpib_validate.blender.scenes import lens
-    from mpib_validate.runtime.io.camera_header import resolve
-    from mpib_validate.runtime.refocus import load_passes, refocus
-    from mpib_validate.runtime.request import RefocusRequest
 
-    path = sc.folder / "passes.exr"
-    passes = load_passes(path)
-    H, W = passes.depth.shape
-    cam = resolve(passes.camera, {}, W, H, path).camera  # as mpib refocus reads it
-    A, d_f = float(cam.blur_parameter), float(cam.focus_disparity)
-    refocus(RefocusRequest(passes, A, d_f, "default"))  # warm-up (kernel caches), untimed
-    res, seconds = _timed(lambda: refocus(RefocusRequest(passes, A, d_f, "default")))
+    passes, A, d_f = scene_passes(sc)
+    res, seconds = timed_refocus(passes, A, d_f, "default")
     out = {DEFAULT: (premultiplied(res.image), seconds)}
     import importlib.util
 
@@ -718,7 +723,7 @@ def _markdown(result) -> str:
                          f"{_fmt(r['node_degraded'])} | {r['guided'] - r['node_degraded']:+.2f} |")
         keys = ("exact", "degraded", "guided", "thin", "node_exact", "node_degraded")
         mean = {k: float(np.mean([r[k] for r in deg])) for k in keys}
-        lines.append(f"| mean | " + " | ".join(_fmt(mean[k]) for k in keys) +
+        lines.append("| mean | " + " | ".join(_fmt(mean[k]) for k in keys) +
                      f" | {mean['guided'] - mean['node_degraded']:+.2f} |")
         from mpib_validate.bench.photos import scope_markdown
 
