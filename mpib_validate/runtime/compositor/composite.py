@@ -842,11 +842,18 @@ def _runs(tiles: np.ndarray, T: int, clip):
 
 
 #: The farther composite is renormalised by ``1 / max(n, _RENORM_FLOOR)`` (``n`` its
-#: normaliser): where a blur has no content the FFT's noise is cleared below
-#: ``kernels.FFT_FLOOR`` (1e-6 of the channel peaks), so what is raised is content,
-#: whose float32 rounding (below 3e-8 of the peak) is raised with it by at most 1e3;
-#: a real coverage below the floor is raised in proportion, continuously.
-_RENORM_FLOOR = 1e-3
+#: normaliser): raised to full strength where it holds at least a quarter of its
+#: rays, in proportion below. Next to an occluder's silhouette, the hole that the
+#: renormalisation fills, the farther blur holds the far side's half-plane and the fill
+#: (``n`` about 1/2 and more; 0.3 where the occluder's own blur ends on the box before
+#: the sky of ``tests/test_chain.py``). Inside a surface cut into planes of different
+#: radii the chain's own coverage falls short by up to 10 % where its disparity crosses
+#: planes (the shares of a pixel are blurred with different kernels), which is no hole;
+#: there the farther composite is only the tail of a distant blur, and raising a tail of
+#: 1/200 of its rays to full strength laid patches of the far colour, cut off sharply
+#: where the tail ends, inside the blurred surface (``tests/test_chain.py``). FFT noise
+#: is cleared below ``kernels.FFT_FLOOR`` (1e-6 of the channel peaks), far below.
+_RENORM_FLOOR = 0.25
 
 
 class _Chain:
