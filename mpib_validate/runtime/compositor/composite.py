@@ -535,7 +535,9 @@ def _accumulate(mpi: MPI, blur_parameter: float, focus_disparity: float,
     group_sum, group_tiles, group_id = None, None, None  # the additive slab being summed
     layers, slab_of = _slab_layers(mpi, (settings.slab_px or 0.0) / blur_parameter)
     chain = None if settings.chain_px is None else _Chain(
-        layers, slab_of, settings.chain_px / blur_parameter, (ny, nx), m, frame)
+        layers, slab_of, settings.chain_px / blur_parameter, (ny, nx), m, frame,
+        [_reach(blur_parameter * (l.disparity - focus_disparity), settings) for l in layers],
+        canvas)
     jobs = _layer_parts(layers, blur_parameter, focus_disparity, settings, cell, canvas,
                         frame, mpi.colour_max is None)
 
@@ -884,13 +886,16 @@ class _Chain:
     that the slab wrote, as :func:`_over_tiles` does.
     """
 
-    def __init__(self, layers, slab_of, gap: float, tiles_shape, margin: int, frame):
+    def __init__(self, layers, slab_of, gap: float, tiles_shape, margin: int, frame,
+                 reach=None, canvas=None):
         self.lo, self.hi = _disparity_ranges(layers, slab_of)
         self.gap, self.m, self.frame = gap, margin, frame
         self.shape = tiles_shape
         self.sum = None  # the chain's combined premultiplied colour and normaliser
         self.tiles = None
         self.last = None
+        self.layers, self.slab_of, self.reach, self.canvas = layers, slab_of, reach, canvas
+        self.members = set()  # the slabs of the current chain
 
     def push(self, acc, group_sum, group_tiles, slab) -> None:
         """Add the summed slab ``group_sum`` (written on ``group_tiles``; cleared here)."""
@@ -912,18 +917,68 @@ class _Chain:
             g[...] = 0.0
         self.tiles |= group_tiles
         self.last = slab
+        self.members.add(slab)
 
     def flush(self, acc) -> None:
         """Lay the chain on ``acc`` (renormalised) with "over"; start a new chain."""
         if self.tiles is None:
             return
         m = self.m
+        inside = self._inside()
         for y0, y1, x0, x1 in _runs(self.tiles, _TILE, self.frame):
             region = acc[y0 - m:y1 - m, x0 - m:x1 - m]
             # where n = 0 the colour is 0 too (up to FFT noise, raised to 1e-9 at most)
-            region *= 1.0 / np.maximum(region[..., 3:4], np.float32(_RENORM_FLOOR))
+            gain = 1.0 / np.maximum(region[..., 3:4], np.float32(_RENORM_FLOOR))
+            if inside is not None:
+                w, (iy0, ix0) = inside
+                gain = gain * (1.0 - w[y0 - iy0:y1 - iy0, x0 - ix0:x1 - ix0, None])
+            region *= gain
         _over_tiles(acc, self.sum, self.tiles, m, self.frame)
         self.tiles = None
+        self.members = set()
+
+    def _inside(self):
+        """``(w, (y0, x0))``: over the box of the chain's tiles (canvas pixels from
+        ``(y0, x0)``), how far each pixel lies inside the chain's opaque footprint:
+        0 within its largest blur reach ``R`` of a pixel that the chain does not cover
+        opaquely, rising linearly to 1 at ``1.5 R``; None when no pixel is that deep.
+
+        There a thin lens sees only the chain's surface, and a coverage below 1 is not
+        a hole but the shortfall of a surface cut into planes of different radii (the
+        shares of a pixel between two planes are blurred with different kernels: up to
+        10 % where a noisy disparity crosses planes). The farther composite is not laid
+        under it there, so Eq. 1's division normalises the chain's own colour, as it
+        does without chains; the ramp keeps the change continuous."""
+        if self.reach is None or not self.members:
+            return None
+        from scipy import ndimage
+
+        rows = np.flatnonzero(self.tiles.any(axis=1))
+        cols = np.flatnonzero(self.tiles.any(axis=0))
+        y0, y1 = rows[0] * _TILE, min((rows[-1] + 1) * _TILE, self.canvas[0])
+        x0, x1 = cols[0] * _TILE, min((cols[-1] + 1) * _TILE, self.canvas[1])
+        R = max(r for l, s, r in zip(self.layers, self.slab_of, self.reach)
+                if s in self.members)
+        if 2 * R >= min(y1 - y0, x1 - x0):
+            return None
+        cover = np.zeros((y1 - y0, x1 - x0), np.float32)
+        a = np.empty_like(cover)
+        for l, s in zip(self.layers, self.slab_of):
+            if s in self.members:
+                a[...] = 0.0
+                l.read(a, y0, x0, channel=3)
+                cover += a
+        solid = cover >= np.float32(1.0 - 1e-3)
+        # the compositor continues content at the canvas edge outward: so does the mask
+        pad = [(0 if y0 == 0 else 1, 0 if y1 == self.canvas[0] else 1),
+               (0 if x0 == 0 else 1, 0 if x1 == self.canvas[1] else 1)]
+        padded = np.pad(solid, pad, constant_values=False)
+        if padded.all():
+            return None
+        dist = ndimage.distance_transform_edt(padded)[pad[0][0]:pad[0][0] + solid.shape[0],
+                                                      pad[1][0]:pad[1][0] + solid.shape[1]]
+        w = np.clip((dist - R) / (0.5 * R + 1.0), 0.0, 1.0).astype(np.float32)
+        return (w, (y0, x0)) if w.any() else None
 
 
 def _disjoint_over(under: np.ndarray, g: np.ndarray) -> None:

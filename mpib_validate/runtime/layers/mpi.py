@@ -110,17 +110,19 @@ class Layer:
         h, w = self._shape[:2]
         return self.y0, self.y0 + h, self.x0, self.x0 + w
 
-    def read(self, out: np.ndarray, y0: int, x0: int) -> None:
+    def read(self, out: np.ndarray, y0: int, x0: int, channel: int | None = None) -> None:
         """Write the layer's content into ``out``, whose pixel ``[0, 0]`` is canvas pixel
-        ``(y0, x0)``, where they overlap (``out`` is expected zero elsewhere)."""
+        ``(y0, x0)``, where they overlap (``out`` is expected zero elsewhere). With
+        ``channel``, only that channel, into a 2-D ``out``."""
         H, W = out.shape[:2]
+        ch = (slice(None),) if channel is None else (channel,)
         if self.tiles is None:
             ly0, ly1, lx0, lx1 = self.box
             a0, a1 = max(ly0, y0), min(ly1, y0 + H)
             b0, b1 = max(lx0, x0), min(lx1, x0 + W)
             if a0 < a1 and b0 < b1:
-                out[a0 - y0:a1 - y0, b0 - x0:b1 - x0] = self._rgba[a0 - ly0:a1 - ly0,
-                                                                  b0 - lx0:b1 - lx0]
+                out[a0 - y0:a1 - y0, b0 - x0:b1 - x0] = self._rgba[
+                    (slice(a0 - ly0, a1 - ly0), slice(b0 - lx0, b1 - lx0)) + ch]
             return
         keys, data = self.tiles
         T = data.shape[1]
@@ -135,8 +137,8 @@ class Layer:
                 ty, tx = ky * T, kx * T
                 a0, a1 = max(ty, y0), min(ty + T, y0 + H)
                 b0, b1 = max(tx, x0), min(tx + T, x0 + W)
-                out[a0 - y0:a1 - y0, b0 - x0:b1 - x0] = data[i, a0 - ty:a1 - ty,
-                                                             b0 - tx:b1 - tx]
+                out[a0 - y0:a1 - y0, b0 - x0:b1 - x0] = data[
+                    (i, slice(a0 - ty, a1 - ty), slice(b0 - tx, b1 - tx)) + ch]
 
     def occupancy(self, canvas: tuple[int, int], T: int = TILE_PX) -> np.ndarray:
         """Boolean map over the canvas-aligned tiles of side ``T`` (a multiple or a
