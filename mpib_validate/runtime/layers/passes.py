@@ -436,7 +436,8 @@ def sheets_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
 
     jumps = _fill.disparity_jumps(D, thr)
     seed, _, near_next = jumps
-    region, far_field = _fill.occlusion_region(D, blur_parameter, thr, jumps=jumps)
+    region, far_field, reach_far = _fill.occlusion_region(D, blur_parameter, thr,
+                                                          jumps=jumps, reach=True)
     step_done(0.25)
     if not settings.fill:
         region[:] = False
@@ -463,7 +464,8 @@ def sheets_from_passes(colour: np.ndarray, disparity: np.ndarray, blur_parameter
     flat_d = D.ravel()
     if settings.fill and (region.any() or band.any()):
         # background: filled only from pure pixels on the farther side of the edges
-        bg_rgb = _fill.fill_hidden(rgb, D, region, far_field, thr, exclude=band | corner)
+        bg_rgb = _fill.fill_hidden(rgb, D, region, far_field, thr, exclude=band | corner,
+                                   reach_far=reach_far)
         if background is not None:
             use = known_background_mask(rgb, D, far_field, near_next, known_rgb, known,
                                         known_d)
