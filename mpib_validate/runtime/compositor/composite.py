@@ -887,7 +887,7 @@ class _Chain:
     """
 
     def __init__(self, layers, slab_of, gap: float, tiles_shape, margin: int, frame,
-                 reach=None, canvas=None):
+                 reach, canvas):
         self.lo, self.hi = _disparity_ranges(layers, slab_of)
         self.gap, self.m, self.frame = gap, margin, frame
         self.shape = tiles_shape
@@ -940,8 +940,9 @@ class _Chain:
     def _inside(self):
         """``(w, (y0, x0))``: over the box of the chain's tiles (canvas pixels from
         ``(y0, x0)``), how far each pixel lies inside the chain's opaque footprint:
-        0 within its largest blur reach ``R`` of a pixel that the chain does not cover
-        opaquely, rising linearly to 1 at ``1.5 R``; None when no pixel is that deep.
+        0 within its largest blur reach ``R`` (``reach`` of its layers) of a pixel that
+        the chain does not cover opaquely, rising linearly to 1 at ``1.5 R + 1``; None
+        when no pixel is that deep.
 
         There a thin lens sees only the chain's surface, and a coverage below 1 is not
         a hole but the shortfall of a surface cut into planes of different radii (the
@@ -949,7 +950,7 @@ class _Chain:
         10 % where a noisy disparity crosses planes). The farther composite is not laid
         under it there, so Eq. 1's division normalises the chain's own colour, as it
         does without chains; the ramp keeps the change continuous."""
-        if self.reach is None or not self.members:
+        if not self.members:
             return None
         from scipy import ndimage
 

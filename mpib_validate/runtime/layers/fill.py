@@ -125,23 +125,28 @@ def occlusion_region(disparity: np.ndarray, blur_parameter: float, threshold: fl
         # bucket's box grown by R (it holds every seed of the bucket, so each distance
         # there is the full frame's)
         R = math.ceil(radius[bucket].max())
-        rows = np.flatnonzero(bucket.any(axis=1))
-        cols = np.flatnonzero(bucket.any(axis=0))
-        y0, y1 = max(rows[0] - R, 0), min(rows[-1] + R + 1, D.shape[0])
-        x0, x1 = max(cols[0] - R, 0), min(cols[-1] + R + 1, D.shape[1])
-        if not reach:
+        y0, y1, x0, x1 = _grown_box(bucket, R)
+        if reach:
+            dist, (jy, jx) = ndimage.distance_transform_edt(~bucket[y0:y1, x0:x1],
+                                                            return_indices=True)
+            box_best = best[y0:y1, x0:x1]
+            nearer = dist <= np.minimum(R, box_best)
+            box_best[nearer] = dist[nearer]
+            reach_far[y0:y1, x0:x1][nearer] = far[y0:y1, x0:x1][jy[nearer], jx[nearer]]
+        else:
             dist = ndimage.distance_transform_edt(~bucket[y0:y1, x0:x1])
-            region[y0:y1, x0:x1] |= dist <= R
-            continue
-        dist, (jy, jx) = ndimage.distance_transform_edt(~bucket[y0:y1, x0:x1],
-                                                        return_indices=True)
         region[y0:y1, x0:x1] |= dist <= R
-        box_best = best[y0:y1, x0:x1]
-        nearer = dist <= np.minimum(R, box_best)
-        box_best[nearer] = dist[nearer]
-        reach_far[y0:y1, x0:x1][nearer] = far[y0:y1, x0:x1][jy[nearer], jx[nearer]]
     region &= D > far_field + 0.5 * threshold
     return (region, far_field, reach_far) if reach else (region, far_field)
+
+
+def _grown_box(mask: np.ndarray, margin: int) -> tuple[int, int, int, int]:
+    """``(y0, y1, x0, x1)``: the bounding box of a non-empty ``mask`` grown by
+    ``margin`` pixels on every side, clipped to the image."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    cols = np.flatnonzero(mask.any(axis=0))
+    return (max(rows[0] - margin, 0), min(rows[-1] + margin + 1, mask.shape[0]),
+            max(cols[0] - margin, 0), min(cols[-1] + margin + 1, mask.shape[1]))
 
 
 def push_pull(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
@@ -278,10 +283,7 @@ def fill_hidden(colour: np.ndarray, disparity: np.ndarray, region: np.ndarray,
             # the deepest hidden surface among the region pixels within OCCLUDER_PX,
             # on the candidates' box grown by that much
             p = OCCLUDER_PX
-            rows = np.flatnonzero(cand.any(axis=1))
-            cols = np.flatnonzero(cand.any(axis=0))
-            y0, y1 = max(rows[0] - p, 0), min(rows[-1] + p + 1, D.shape[0])
-            x0, x1 = max(cols[0] - p, 0), min(cols[-1] + p + 1, D.shape[1])
+            y0, y1, x0, x1 = _grown_box(cand, p)
             yy, xx = np.mgrid[-p:p + 1, -p:p + 1]
             hidden = np.where(region[y0:y1, x0:x1], ref[y0:y1, x0:x1], np.inf)
             deepest = ndimage.grey_erosion(hidden, footprint=yy ** 2 + xx ** 2 <= p * p,
