@@ -175,3 +175,40 @@ def test_nothing_farther_shows_through_a_surface_crossing_planes():
     assert deep.sum() > 1000, deep.sum()
     blue = (C.composite(mpi, A, d_f, CHAIN)[..., 2] - 0.5) / (0.9 - 0.5)
     assert np.abs(blue[deep]).max() < 1e-5, np.abs(blue[deep]).max()
+
+
+def test_a_fill_in_the_same_chain_shows_only_through_the_shortfall():
+    """The surface of the test above, now in one chain with its background: a ramp at
+    the picture's edge holds every disparity in between (as a photograph's continuous
+    map does), so the blue fill behind the surface's silhouette lies in the chain, under
+    the surface's slabs. Where the noisy surface crosses two slabs, the disjoint over
+    of the nearer slab on all before it shrank the farther slab and the fill alike, and
+    the fill showed through the surface far inside its silhouette (blue up to 0.29 of
+    the colour; light patches in blurred hair on a photograph). Required: beyond the
+    surface's own blur radius inside it, blue no more than the shortfall of a surface
+    crossing planes (up to about 0.10, see above); deeper than the two slabs' ramp
+    (``1.5 R + 1`` px from a pixel they do not cover opaquely, plus two of the rule's
+    4 px cells, which count as covered only when all their pixels are and whose
+    distance is taken one cell short), none (0.076 before that rule)."""
+    from scipy import ndimage
+
+    H, W = 160, 200
+    A, d_f = 32.0, 0.92
+    near = np.zeros((H, W), bool)
+    near[16:144, 56:184] = True
+    noise = ndimage.gaussian_filter(np.random.default_rng(0).standard_normal((H, W)), 2.0)
+    D = np.where(near, 0.70 + 0.01 * noise / noise.std(), 0.2)
+    ramp = np.zeros((H, W), bool)
+    ramp[:, :12] = True
+    D = np.where(ramp, np.linspace(0.2, 0.75, H)[:, None], D)
+    colour = np.where(near[..., None], np.float32([0.5, 0.5, 0.5]), np.float32([0.1, 0.2, 0.9]))
+    colour = np.where(ramp[..., None], np.float32([0.9, 0.2, 0.1]), colour)
+    mpi, _ = layers_from_passes(colour, D, A, DEFAULT.passes)
+    r_near = A * (d_f - D[near].min())
+    inside = ndimage.binary_erosion(near, iterations=int(np.ceil(r_near)) + 2)
+    blue = (C.composite(mpi, A, d_f, CHAIN)[..., 2] - 0.5) / (0.9 - 0.5)
+    assert blue[inside].max() < 0.10, blue[inside].max()
+    R = max(C._reach(A * (l.disparity - d_f), CHAIN) for l in mpi.layers if l.disparity > 0.5)
+    deep = ndimage.binary_erosion(near, iterations=int(np.ceil(1.5 * R + 1)) + 2 * C._ONE_CELL)
+    assert deep.sum() > 1000, deep.sum()
+    assert np.abs(blue[deep]).max() < 1e-5, np.abs(blue[deep]).max()

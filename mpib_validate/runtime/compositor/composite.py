@@ -878,6 +878,16 @@ class _Chain:
       occluder see the farther surface: the farther composite is renormalised,
       ``acc <- acc / n``, before a chain is laid on it.
 
+    A chain also holds what lies behind a surface: the hidden background filled behind
+    a silhouette, at the far side's disparity, when the disparities in between are
+    held elsewhere in the picture (a photograph's map is continuous). Where a surface
+    crosses two slabs, the disjoint over of the nearer on everything before it shrank
+    the farther slab and that fill alike, and the fill showed through the surface
+    (light patches inside blurred hair, up to a quarter of the colour). Where the new
+    slab and the last one are one surface (:meth:`_weights`), the two are combined
+    first and what lay before them fills only what they leave, and nothing deep inside
+    their opaque footprint (:func:`_disjoint_over_last`).
+
     Consecutive slabs are one chain while the disparity gap between them is within
     ``gap`` (the planes of one continuous surface are a plane step apart, a gap in
     the content more); the disjoint over inside a chain, renormalisation and "over"
@@ -896,6 +906,89 @@ class _Chain:
         self.last = None
         self.layers, self.slab_of, self.reach, self.canvas = layers, slab_of, reach, canvas
         self.members = set()  # the slabs of the current chain
+        self.last_sum = None  # the last slab as laid (frame-sized), on last_tiles
+        self.last_tiles = None
+        self.last_foot = None  # the last slab's _footprint
+        self.by_slab: dict = {}  # slab -> [(layer, reach)]
+        for layer, s, r in zip(layers, slab_of, reach):
+            self.by_slab.setdefault(s, []).append((layer, r))
+
+    def _footprint(self, slab) -> tuple:
+        """Where the slab's layers hold content: ``(alpha, cells)``, the sum of their
+        alphas (unblurred; canvas float32, padded to whole :data:`_ONE_CELL` px cells)
+        and, on those cells, where it is above 0."""
+        f = _ONE_CELL
+        H, W = self.canvas
+        hc, wc = -(-H // f), -(-W // f)
+        alpha = np.zeros((hc * f, wc * f), np.float32)
+        cells = np.zeros((hc, wc), bool)
+        layers = [layer for layer, _ in self.by_slab.get(slab, [])]
+        for layer in layers:
+            y0, y1, x0, x1 = layer.box
+            a = np.zeros((y1 - y0, x1 - x0), np.float32)
+            layer.read(a, y0, x0, channel=3)
+            alpha[y0:y1, x0:x1] += a
+        if layers:  # the cells of the layers' union box
+            cy0, cx0 = min(l.box[0] for l in layers) // f, min(l.box[2] for l in layers) // f
+            cy1 = -(-max(l.box[1] for l in layers) // f)
+            cx1 = -(-max(l.box[3] for l in layers) // f)
+            cells[cy0:cy1, cx0:cx1] = (alpha[cy0 * f:cy1 * f, cx0 * f:cx1 * f] > 0).reshape(
+                cy1 - cy0, f, cx1 - cx0, f).any(axis=(1, 3))
+        return alpha, cells
+
+    def _weights(self, slab, foot, tiles):
+        """``(w, (cy0, cx0))``: on :data:`_ONE_CELL` px cells (from cell ``(cy0, cx0)``)
+        over the box of ``tiles`` and around it, the two weights of
+        :func:`_disjoint_over_last` for the slab on the last one, ``w[..., 0] = same``
+        and ``w[..., 1] = deep`` (:func:`_cell_weights` reads them at pixels):
+
+        - *same*, how far the two are one surface: 1 where either holds content, but 0
+          within the slab's blur reach of a place where both do. Visible content never
+          overlaps itself, so content of the last slab under this one is hidden
+          background filled behind it: the two meet at a depth jump, and what lies
+          behind both may show between them;
+        - *deep*, how far the pixel lies inside the two's opaque footprint: 0 within
+          ``R`` px of a pixel they do not cover opaquely (``R`` the larger of their
+          blur reaches), rising linearly to 1 at ``1.5 R + 1``. A thin lens sees only
+          them there, so nothing behind fills their shortfall.
+
+        A cell is opaque when all its pixels are, and its distance is taken one cell
+        short. Beyond the canvas the compositor continues the content: there it counts
+        as opaque."""
+        from scipy import ndimage
+
+        f = _ONE_CELL
+        H, W = self.canvas
+        rows = np.flatnonzero(tiles.any(axis=1))
+        cols = np.flatnonzero(tiles.any(axis=0))
+        y0, y1 = rows[0] * _TILE, min((rows[-1] + 1) * _TILE, H)
+        x0, x1 = cols[0] * _TILE, min((cols[-1] + 1) * _TILE, W)
+        reach = max([r for s in (slab, self.last) for _, r in self.by_slab.get(s, [])] + [0])
+        R = int(math.ceil(reach))
+        grow = int(math.ceil((1.5 * R + 1) / f)) + 2  # cells: the filters' reach, and one
+        cy0, cy1 = max(0, y0 // f - grow), min(foot[1].shape[0], -(-y1 // f) + grow)
+        cx0, cx1 = max(0, x0 // f - grow), min(foot[1].shape[1], -(-x1 // f) + grow)
+        py, px = slice(cy0 * f, cy1 * f), slice(cx0 * f, cx1 * f)
+        shape = (cy1 - cy0, f, cx1 - cx0, f)
+        here, last = foot[1][cy0:cy1, cx0:cx1], self.last_foot[1][cy0:cy1, cx0:cx1]
+        w = np.zeros((cy1 - cy0, cx1 - cx0, 2), np.float32)
+        w[..., 0] = here | last
+        if (here & last).any():  # cells where both may hold content: at one pixel?
+            jump = ((foot[0][py, px] > 0) & (self.last_foot[0][py, px] > 0)).reshape(
+                shape).any(axis=(1, 3))
+            if jump.any():
+                n = 2 * int(math.ceil(R / f)) + 3
+                w[ndimage.maximum_filter(jump, size=n), 0] = 0.0
+        solid = (foot[0][py, px] + self.last_foot[0][py, px]) >= np.float32(1.0 - 1e-3)
+        solid[H - cy0 * f:, :] = True
+        solid[:, W - cx0 * f:] = True
+        cells = solid.reshape(shape).all(axis=(1, 3))
+        if cells.all():
+            w[..., 1] = 1.0
+        elif cells.any():
+            dist = f * (ndimage.distance_transform_edt(cells) - 1.0)
+            w[..., 1] = np.clip((dist - R) / (0.5 * R + 1.0), 0.0, 1.0)
+        return w, (cy0, cx0)
 
     def push(self, acc, group_sum, group_tiles, slab) -> None:
         """Add the summed slab ``group_sum`` (written on ``group_tiles``; cleared here)."""
@@ -906,15 +999,27 @@ class _Chain:
         fresh = self.tiles is None  # the chain's sum is zero: the slab is copied in
         if fresh:
             self.tiles = np.zeros(self.shape, bool)
+        if self.last_sum is None:
+            self.last_sum = np.zeros_like(acc)
         m = self.m
+        foot = self._footprint(slab)
+        if not fresh:
+            cells, origin = self._weights(slab, foot, group_tiles)
+        if self.last_tiles is not None:  # the last slab is zero where this one is not
+            for y0, y1, x0, x1 in _runs(self.last_tiles & ~group_tiles, _TILE, self.frame):
+                self.last_sum[y0 - m:y1 - m, x0 - m:x1 - m] = 0.0
         for y0, y1, x0, x1 in _runs(group_tiles, _TILE, self.frame):
             g = group_sum[y0 - m:y1 - m, x0 - m:x1 - m]
             c = self.sum[y0 - m:y1 - m, x0 - m:x1 - m]
+            last = self.last_sum[y0 - m:y1 - m, x0 - m:x1 - m]
             if fresh:
                 c[...] = g
             else:
-                _disjoint_over(c, g)
+                _disjoint_over_last(c, last, g, *_cell_weights(cells, origin, y0, y1, x0, x1))
+            last[...] = g
             g[...] = 0.0
+        self.last_tiles = group_tiles.copy()
+        self.last_foot = foot
         self.tiles |= group_tiles
         self.last = slab
         self.members.add(slab)
@@ -934,6 +1039,9 @@ class _Chain:
                 gain = gain * (1.0 - w[y0 - iy0:y1 - iy0, x0 - ix0:x1 - ix0, None])
             region *= gain
         _over_tiles(acc, self.sum, self.tiles, m, self.frame)
+        for y0, y1, x0, x1 in _runs(self.last_tiles, _TILE, self.frame):
+            self.last_sum[y0 - m:y1 - m, x0 - m:x1 - m] = 0.0
+        self.last_tiles = self.last_foot = None
         self.tiles = None
         self.members = set()
 
@@ -982,18 +1090,74 @@ class _Chain:
         return (w, (y0, x0)) if w.any() else None
 
 
-def _disjoint_over(under: np.ndarray, g: np.ndarray) -> None:
-    """``under <- g + min(1, (1 - a_g) / a_u) under`` in place (Porter-Duff disjoint
-    over; ``a`` the normalisers, clipped to 1): the sum where the two coverages add up
-    to at most 1, the nearer ``g`` in front where they overlap."""
-    free = 1.0 - np.minimum(g[..., 3:4], np.float32(1.0))
-    # min(1, free / a) = free / max(a, free); a clipped to 1 is a <= 1, so max(a, free)
-    # needs no clip; 1e-30 where both are 0 (then ``under`` is 0 as well)
-    denom = np.maximum(under[..., 3:4], free)
-    np.minimum(denom, np.float32(1.0), out=denom)
-    np.maximum(denom, np.float32(1e-30), out=denom)
-    under *= free / denom
-    under += g
+#: Side (px) of the cells on which a chain decides where a slab and the last one are
+#: one surface and how deep inside it a pixel lies (:meth:`_Chain._weights`; bilinear
+#: between cell centres, so that the rule changes continuously).
+_ONE_CELL = 4
+
+
+def _cell_weights(cells: np.ndarray, origin, y0: int, y1: int, x0: int, x1: int):
+    """The weights ``(same, deep)`` of :meth:`_Chain._weights` (on cells from cell
+    ``origin``) at canvas pixels ``[y0, y1) x [x0, x1)``: bilinear between the cells'
+    centres, so that they change continuously; two numbers where the cells around are
+    all alike."""
+    f = _ONE_CELL
+    cy0, cx0 = origin
+    by0, bx0 = max(0, (y0 // f) - 1 - cy0), max(0, (x0 // f) - 1 - cx0)
+    block = cells[by0:-(-y1 // f) + 1 - cy0, bx0:-(-x1 // f) + 1 - cx0]
+    first = block[0, 0]
+    if (block == first).all():
+        return float(first[0]), float(first[1])
+    ty = (np.arange(y0, y1) + 0.5) / f - 0.5 - cy0 - by0
+    tx = (np.arange(x0, x1) + 0.5) / f - 0.5 - cx0 - bx0
+    w = _bilinear_separable(block, ty, tx)
+    return w[..., 0], w[..., 1]
+
+
+def _disjoint_over_last(chain: np.ndarray, last: np.ndarray, g: np.ndarray,
+                        same: np.ndarray, deep: np.ndarray) -> None:
+    """``chain <- g + k_P P + k_O O`` in place: ``g`` the new slab, ``P = last`` the
+    chain's last slab (as laid) and ``O = chain - P`` what the chain held behind it;
+    normalisers ``a`` clipped to 1, weights ``same`` and ``deep`` in [0, 1] (2-D, or
+    numbers; :meth:`_Chain._weights`).
+
+    - ``same = 0``: Porter and Duff's disjoint over of ``g`` on ``P + O``,
+      ``k_P = k_O = min(1, (1 - a_g) / a_{P+O})``: the sum where the two coverages add
+      up to at most 1, the nearer ``g`` in front where they overlap;
+    - ``same = 1`` (``g`` and ``P`` are one surface): the disjoint over of ``g`` on ``P``,
+      then of both on ``O``: ``k_P = min(1, (1 - a_g) / a_P)``, ``k_O = (1 - deep)
+      min(1, (1 - a_g - k_P a_P) / min(a_O, 1 - a_P))``. ``O`` fills only what the
+      surface leaves (its shortfall where it crosses planes), and nothing deep inside
+      it, where the plain disjoint over shrank ``P`` and ``O`` alike and let ``O`` show
+      through the surface by up to ``a_O (1 - a_g)``;
+    - linear in ``same`` between. ``g = 0`` and ``deep = 0`` leave the chain as it is."""
+    one, zero, tiny = np.float32(1.0), np.float32(0.0), np.float32(1e-30)
+    free = one - np.minimum(g[..., 3], one)
+    a_c = chain[..., 3]
+    k_all = free / np.clip(np.maximum(a_c, free), tiny, one)
+    if not np.any(same):
+        chain *= k_all[..., None]
+        chain += g
+        return
+    # chain <- k_O chain + (k_P - k_O) P + g
+    a_l = last[..., 3]
+    a_p = np.minimum(a_l, one)
+    k_p = free / np.clip(np.maximum(a_p, free), tiny, one)
+    free -= k_p * a_p  # what g and P leave for O
+    np.maximum(free, zero, out=free)
+    room = np.minimum(np.maximum(a_c - a_l, zero), one - a_p)
+    k_o = free / np.clip(np.maximum(room, free), tiny, one)
+    if np.any(deep):
+        k_o *= 1.0 - deep
+    k_p -= k_o
+    if not np.all(same == 1.0):
+        k_p *= same
+        k_o -= k_all
+        k_o *= same
+        k_o += k_all
+    chain *= k_o[..., None]
+    chain += k_p[..., None] * last
+    chain += g
 
 
 def _normalise(acc: np.ndarray, cmax: np.ndarray) -> np.ndarray:
