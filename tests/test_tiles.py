@@ -51,6 +51,24 @@ def test_tiled_layers_hold_exactly_the_dense_content(smooth_mpi):
         assert not win[:3].any() and not win[:, :2].any()
 
 
+def test_adding_a_channel_equals_reading_it(smooth_mpi):
+    """``Layer.add_channel`` (the chains' footprints) adds a tiled layer's stored tiles in
+    one step: the same sum as reading the channel, for tiled and dense layers."""
+    mpi, _, _ = smooth_mpi
+    H, W = mpi.canvas_shape
+    T = M.TILE_PX
+    kinds = set()
+    for l in mpi.layers:
+        kinds.add(l.tiles is None)
+        out = np.full((-(-H // T) * T, -(-W // T) * T), 0.25, np.float32)
+        l.add_channel(out, 3)
+        ref = np.zeros(out.shape, np.float32)
+        y0, y1, x0, x1 = l.box
+        l.read(ref[y0:y1, x0:x1], y0, x0, channel=3)
+        np.testing.assert_array_equal(out, ref + np.float32(0.25))
+    assert kinds == {True, False}, kinds
+
+
 def test_tiled_composite_matches_untiled_dense(smooth_mpi):
     """Tiles and batches change only the FFT sizes (float32, noise below 3e-8 of the
     peak, kernels.FFT_DTYPE) and the order of nothing else; the output is float32 after ~40 layers of float32

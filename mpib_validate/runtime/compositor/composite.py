@@ -915,25 +915,22 @@ class _Chain:
 
     def _footprint(self, slab) -> tuple:
         """Where the slab's layers hold content: ``(alpha, cells)``, the sum of their
-        alphas (unblurred; canvas float32, padded to whole :data:`_ONE_CELL` px cells)
-        and, on those cells, where it is above 0."""
+        alphas (unblurred; canvas float32, padded to whole storage tiles) and, on
+        :data:`_ONE_CELL` px cells, where it is above 0."""
         f = _ONE_CELL
         H, W = self.canvas
         hc, wc = -(-H // f), -(-W // f)
-        alpha = np.zeros((hc * f, wc * f), np.float32)
+        T = _M.TILE_PX  # a multiple of f: the storage tiles' grid is the cells' grid
+        alpha = np.zeros((-(-H // T) * T, -(-W // T) * T), np.float32)
         cells = np.zeros((hc, wc), bool)
         layers = [layer for layer, _ in self.by_slab.get(slab, [])]
         for layer in layers:
-            y0, y1, x0, x1 = layer.box
-            a = np.zeros((y1 - y0, x1 - x0), np.float32)
-            layer.read(a, y0, x0, channel=3)
-            alpha[y0:y1, x0:x1] += a
+            layer.add_channel(alpha, 3)
         if layers:  # the cells of the layers' union box
             cy0, cx0 = min(l.box[0] for l in layers) // f, min(l.box[2] for l in layers) // f
             cy1 = -(-max(l.box[1] for l in layers) // f)
             cx1 = -(-max(l.box[3] for l in layers) // f)
-            cells[cy0:cy1, cx0:cx1] = (alpha[cy0 * f:cy1 * f, cx0 * f:cx1 * f] > 0).reshape(
-                cy1 - cy0, f, cx1 - cx0, f).any(axis=(1, 3))
+            cells[cy0:cy1, cx0:cx1] = _cells(alpha[cy0 * f:cy1 * f, cx0 * f:cx1 * f] > 0)
         return alpha, cells
 
     def _weights(self, slab, foot, tiles):
@@ -969,20 +966,18 @@ class _Chain:
         cy0, cy1 = max(0, y0 // f - grow), min(foot[1].shape[0], -(-y1 // f) + grow)
         cx0, cx1 = max(0, x0 // f - grow), min(foot[1].shape[1], -(-x1 // f) + grow)
         py, px = slice(cy0 * f, cy1 * f), slice(cx0 * f, cx1 * f)
-        shape = (cy1 - cy0, f, cx1 - cx0, f)
         here, last = foot[1][cy0:cy1, cx0:cx1], self.last_foot[1][cy0:cy1, cx0:cx1]
         w = np.zeros((cy1 - cy0, cx1 - cx0, 2), np.float32)
         w[..., 0] = here | last
         if (here & last).any():  # cells where both may hold content: at one pixel?
-            jump = ((foot[0][py, px] > 0) & (self.last_foot[0][py, px] > 0)).reshape(
-                shape).any(axis=(1, 3))
+            jump = _cells((foot[0][py, px] > 0) & (self.last_foot[0][py, px] > 0))
             if jump.any():
                 n = 2 * int(math.ceil(R / f)) + 3
                 w[ndimage.maximum_filter(jump, size=n), 0] = 0.0
         solid = (foot[0][py, px] + self.last_foot[0][py, px]) >= np.float32(1.0 - 1e-3)
         solid[H - cy0 * f:, :] = True
         solid[:, W - cx0 * f:] = True
-        cells = solid.reshape(shape).all(axis=(1, 3))
+        cells = _cells(solid, every=True)
         if cells.all():
             w[..., 1] = 1.0
         elif cells.any():
@@ -1093,7 +1088,16 @@ class _Chain:
 #: Side (px) of the cells on which a chain decides where a slab and the last one are
 #: one surface and how deep inside it a pixel lies (:meth:`_Chain._weights`; bilinear
 #: between cell centres, so that the rule changes continuously).
-_ONE_CELL = 4
+_ONE_CELL = 4  # :func:`_cells` reads 4 bools as one word
+
+
+def _cells(mask: np.ndarray, every: bool = False) -> np.ndarray:
+    """``mask`` (bool, sides multiples of :data:`_ONE_CELL` = 4) on 4 px cells: True where
+    any pixel of the cell is (``every``: all are). A row of 4 bools is read as one
+    32-bit word (1 byte per bool, so all four set is 0x01010101 in either byte order)."""
+    h, w = mask.shape
+    words = np.ascontiguousarray(mask).view(np.uint32).reshape(h // 4, 4, w // 4)
+    return (words == 0x01010101).all(axis=1) if every else (words != 0).any(axis=1)
 
 
 def _cell_weights(cells: np.ndarray, origin, y0: int, y1: int, x0: int, x1: int):

@@ -140,6 +140,25 @@ class Layer:
                 out[a0 - y0:a1 - y0, b0 - x0:b1 - x0] = data[
                     (i, slice(a0 - ty, a1 - ty), slice(b0 - tx, b1 - tx)) + ch]
 
+    def add_channel(self, out: np.ndarray, channel: int) -> None:
+        """Add the layer's ``channel`` into ``out``, a canvas-aligned 2-D array whose
+        sides are whole multiples of the storage tile (:data:`TILE_PX`) and cover the
+        layer's box (a tiled layer's stored tiles in one step)."""
+        if self.tiles is None:
+            y0, y1, x0, x1 = self.box
+            out[y0:y1, x0:x1] += self._rgba[..., channel]
+            return
+        keys, data = self.tiles
+        T = data.shape[1]
+        if out.shape[0] % T or out.shape[1] % T:
+            a = np.zeros(self._shape[:2], np.float32)
+            y0, y1, x0, x1 = self.box
+            self.read(a, y0, x0, channel=channel)
+            out[y0:y1, x0:x1] += a
+            return
+        grid = out.reshape(out.shape[0] // T, T, out.shape[1] // T, T).swapaxes(1, 2)
+        grid[keys[:, 0], keys[:, 1]] += data[..., channel]  # stored tiles are distinct
+
     def occupancy(self, canvas: tuple[int, int], T: int = TILE_PX) -> np.ndarray:
         """Boolean map over the canvas-aligned tiles of side ``T`` (a multiple or a
         divisor of :data:`TILE_PX`, or any side for a dense layer): True where the tile
