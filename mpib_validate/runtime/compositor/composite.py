@@ -1061,14 +1061,13 @@ class _Chain:
         cols = np.flatnonzero(self.tiles.any(axis=0))
         y0, y1 = rows[0] * _TILE, min((rows[-1] + 1) * _TILE, self.canvas[0])
         x0, x1 = cols[0] * _TILE, min((cols[-1] + 1) * _TILE, self.canvas[1])
-        R = max(r for l, s, r in zip(self.layers, self.slab_of, self.reach)
-                if s in self.members)
+        R = max(r for s in self.members for _, r in self.by_slab.get(s, []))
         if 2 * R >= min(y1 - y0, x1 - x0):
             return None
         cover = np.zeros((y1 - y0, x1 - x0), np.float32)
         a = np.empty_like(cover)
-        for l, s in zip(self.layers, self.slab_of):
-            if s in self.members:
+        for s in self.members:
+            for l, _ in self.by_slab.get(s, []):
                 a[...] = 0.0
                 l.read(a, y0, x0, channel=3)
                 cover += a
