@@ -981,8 +981,7 @@ class _Chain:
         if cells.all():
             w[..., 1] = 1.0
         elif cells.any():
-            dist = f * (ndimage.distance_transform_edt(cells) - 1.0)
-            w[..., 1] = np.clip((dist - R) / (0.5 * R + 1.0), 0.0, 1.0)
+            w[..., 1] = _depth_ramp(f * (ndimage.distance_transform_edt(cells) - 1.0), R)
         return w, (cy0, cx0)
 
     def push(self, acc, group_sum, group_tiles, slab) -> None:
@@ -1080,8 +1079,17 @@ class _Chain:
             return None
         dist = ndimage.distance_transform_edt(padded)[pad[0][0]:pad[0][0] + solid.shape[0],
                                                       pad[1][0]:pad[1][0] + solid.shape[1]]
-        w = np.clip((dist - R) / (0.5 * R + 1.0), 0.0, 1.0).astype(np.float32)
+        w = _depth_ramp(dist, R).astype(np.float32)
         return (w, (y0, x0)) if w.any() else None
+
+
+def _depth_ramp(dist: np.ndarray, R: float) -> np.ndarray:
+    """How far inside an opaque footprint a pixel lies, from its distance ``dist`` (px)
+    to the nearest pixel the footprint does not cover: ``clip((dist - R) / (0.5 R + 1),
+    0, 1)``, 0 within the blur reach ``R`` (px) of the footprint's edge, where a lens
+    still sees past it, rising linearly to 1 at ``1.5 R + 1``, so that the rule it
+    weights changes continuously (:meth:`_Chain._weights`, :meth:`_Chain._inside`)."""
+    return np.clip((dist - R) / (0.5 * R + 1.0), 0.0, 1.0)
 
 
 #: Side (px) of the cells on which a chain decides where a slab and the last one are
