@@ -153,7 +153,7 @@ def test_nothing_farther_shows_through_a_surface_crossing_planes():
     composite filled with blue: measured up to 0.10 before the chain's inside was
     known, up to 0.075 where the farther composite was only the tail of the
     background's blur (n between 1/1000 and 1/20 of its rays). Required: no blue deeper
-    than the chain's ramp (``1.5 R + 1`` px from an uncovered pixel, ``R`` its largest
+    than the chain's ramp (``R + 1`` px from an uncovered pixel, ``R`` its largest
     blur reach), up to float32 rounding; in the ramp, a tail adds at most
     ``deficit * n / floor`` (0.10 x 0.05 / 0.25 = 0.02)."""
     from scipy import ndimage
@@ -171,7 +171,7 @@ def test_nothing_farther_shows_through_a_surface_crossing_planes():
     r_near = A * (d_f - D[near].min())
     inside = ndimage.binary_erosion(near, iterations=int(np.ceil(r_near)) + 1)
     R = max(C._reach(A * (l.disparity - d_f), CHAIN) for l in mpi.layers if l.disparity > 0.5)
-    deep = ndimage.binary_erosion(near, iterations=int(np.ceil(1.5 * R + 1)))
+    deep = ndimage.binary_erosion(near, iterations=int(np.ceil(R + 1)))
     assert deep.sum() > 1000, deep.sum()
     blue = (C.composite(mpi, A, d_f, CHAIN)[..., 2] - 0.5) / (0.9 - 0.5)
     assert np.abs(blue[deep]).max() < 1e-5, np.abs(blue[deep]).max()
@@ -187,7 +187,7 @@ def test_a_fill_in_the_same_chain_shows_only_through_the_shortfall():
     the colour; light patches in blurred hair on a photograph). Required: beyond the
     surface's own blur radius inside it, blue no more than the shortfall of a surface
     crossing planes (up to about 0.10, see above); deeper than the two slabs' ramp
-    (``1.5 R + 1`` px from a pixel they do not cover opaquely, plus two of the rule's
+    (``R + 1`` px from a pixel they do not cover opaquely, plus two of the rule's
     4 px cells, which count as covered only when all their pixels are and whose
     distance is taken one cell short), none (0.076 before that rule)."""
     from scipy import ndimage
@@ -209,6 +209,6 @@ def test_a_fill_in_the_same_chain_shows_only_through_the_shortfall():
     blue = (C.composite(mpi, A, d_f, CHAIN)[..., 2] - 0.5) / (0.9 - 0.5)
     assert blue[inside].max() < 0.10, blue[inside].max()
     R = max(C._reach(A * (l.disparity - d_f), CHAIN) for l in mpi.layers if l.disparity > 0.5)
-    deep = ndimage.binary_erosion(near, iterations=int(np.ceil(1.5 * R + 1)) + 2 * C._ONE_CELL)
+    deep = ndimage.binary_erosion(near, iterations=int(np.ceil(R + 1)) + 2 * C._ONE_CELL)
     assert deep.sum() > 1000, deep.sum()
     assert np.abs(blue[deep]).max() < 1e-5, np.abs(blue[deep]).max()

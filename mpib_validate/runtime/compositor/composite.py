@@ -946,7 +946,7 @@ class _Chain:
           behind both may show between them;
         - *deep*, how far the pixel lies inside the two's opaque footprint: 0 within
           ``R`` px of a pixel they do not cover opaquely (``R`` the larger of their
-          blur reaches), rising linearly to 1 at ``1.5 R + 1``. A thin lens sees only
+          blur reaches), rising linearly to 1 at ``R + 1``. A thin lens sees only
           them there, so nothing behind fills their shortfall.
 
         A cell is opaque when all its pixels are, and its distance is taken one cell
@@ -962,7 +962,7 @@ class _Chain:
         x0, x1 = cols[0] * _TILE, min((cols[-1] + 1) * _TILE, W)
         reach = max([r for s in (slab, self.last) for _, r in self.by_slab.get(s, [])] + [0])
         R = int(math.ceil(reach))
-        grow = int(math.ceil((1.5 * R + 1) / f)) + 2  # cells: the filters' reach, and one
+        grow = int(math.ceil((R + 1) / f)) + 2  # cells: the filters' reach, and one
         cy0, cy1 = max(0, y0 // f - grow), min(foot[1].shape[0], -(-y1 // f) + grow)
         cx0, cx1 = max(0, x0 // f - grow), min(foot[1].shape[1], -(-x1 // f) + grow)
         py, px = slice(cy0 * f, cy1 * f), slice(cx0 * f, cx1 * f)
@@ -1043,7 +1043,7 @@ class _Chain:
         """``(w, (y0, x0))``: over the box of the chain's tiles (canvas pixels from
         ``(y0, x0)``), how far each pixel lies inside the chain's opaque footprint:
         0 within its largest blur reach ``R`` (``reach`` of its layers) of a pixel that
-        the chain does not cover opaquely, rising linearly to 1 at ``1.5 R + 1``; None
+        the chain does not cover opaquely, rising linearly to 1 at ``R + 1``; None
         when no pixel is that deep.
 
         There a thin lens sees only the chain's surface, and a coverage below 1 is not
@@ -1085,11 +1085,18 @@ class _Chain:
 
 def _depth_ramp(dist: np.ndarray, R: float) -> np.ndarray:
     """How far inside an opaque footprint a pixel lies, from its distance ``dist`` (px)
-    to the nearest pixel the footprint does not cover: ``clip((dist - R) / (0.5 R + 1),
-    0, 1)``, 0 within the blur reach ``R`` (px) of the footprint's edge, where a lens
-    still sees past it, rising linearly to 1 at ``1.5 R + 1``, so that the rule it
-    weights changes continuously (:meth:`_Chain._weights`, :meth:`_Chain._inside`)."""
-    return np.clip((dist - R) / (0.5 * R + 1.0), 0.0, 1.0)
+    to the nearest pixel the footprint does not cover: ``clip(dist - R, 0, 1)``, 0
+    within the blur reach ``R`` (px) of the footprint's edge, where a lens still sees
+    past it, 1 from ``R + 1`` on (:meth:`_Chain._weights`, :meth:`_Chain._inside`).
+
+    Deeper than ``R`` a thin lens sees nothing behind the footprint, and what lies
+    behind would show only through the few percent by which a surface cut into planes
+    of different radii falls short of full coverage: a pattern of that shortfall's
+    grain, which in a dark region is tens of display levels (a visor's black rim before
+    a light wall: 20 to 30). A ramp wider than a pixel kept that pattern over its width,
+    with an end that a blur of ``R`` cannot make; one pixel keeps the rule continuous
+    enough (the weights are also read bilinearly on 4 px cells)."""
+    return np.clip(dist - R, 0.0, 1.0)
 
 
 #: Side (px) of the cells on which a chain decides where a slab and the last one are

@@ -8,8 +8,11 @@ where the edge is. :func:`refine_disparity` moves the disparity edges onto the c
 edges:
 
 1. the uncertain band: pixels whose ``(2 r + 1)^2`` window spans a blur-radius range
-   ``A (max d - min d) > jump_px`` (a disparity edge within ``r`` pixels; a smooth
-   surface's slope spans less);
+   ``A (max d - min d) > jump_px`` (a disparity edge within ``r`` pixels), less what
+   a smooth slope explains: a steep plane (the ground near the camera) spans more than
+   ``jump_px`` too, so an edge must exceed by ``jump_px`` the range of a plane with the
+   large-scale gradient (:func:`_edges`), and the refined values fade into the input's
+   where an edge ends;
 2. the two sides of each edge: ``d_hi`` and ``d_lo``, the window's maximum and minimum,
    and the predicted side ``m = d > (d_hi + d_lo) / 2`` (the ramp's mid-crossing);
 3. the guided filter (He, Sun and Tang, PAMI 2013; colour guide, O(N) box filters) of
@@ -45,6 +48,8 @@ against the rest of the pipeline.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -165,6 +170,9 @@ def refine_disparity(colour: np.ndarray, disparity: np.ndarray, blur_parameter: 
     hi, lo, band = _window_sides(D, blur_parameter, radius, jump_px)
     if not band.any():
         return D.copy()
+    band, weight = _edges(D, band, hi, lo, blur_parameter, radius, jump_px)
+    if not band.any():
+        return D.copy()
     # each pixel's predicted side: above or below the mid-level of a window that reaches
     # flip_px (at most radius) beyond the band, so that a flat region next to the band (hi == lo there in
     # the band's own window) keeps its side instead of making a false edge inside an
@@ -215,7 +223,7 @@ def refine_disparity(colour: np.ndarray, disparity: np.ndarray, blur_parameter: 
         moved = band & (near != m)
         grown = ndimage.binary_dilation(moved, np.ones((3, 3), bool))
         out = _no_new_slivers(out, D, grown, blur_parameter, jump_px, moved)
-    return out
+    return D + weight * (out - D)
 
 
 #: Side of the square (px) that a pixel moved across the predicted edge by the colour
@@ -390,6 +398,54 @@ def _window_sides(D: np.ndarray, blur_parameter: float, radius: int, jump_px: fl
     hi = ndimage.maximum_filter(D, size, mode="nearest")
     lo = ndimage.minimum_filter(D, size, mode="nearest")
     return hi, lo, blur_parameter * (hi - lo) > jump_px
+
+
+#: The large scale (px, a multiple of the band's ``radius``) over which a smooth slope
+#: keeps its gradient (:func:`_edges`): a ground plane near the camera keeps it across
+#: the frame, a predicted edge's ramp (a few to 20 px wide) over far less. At 4 r =
+#: 24 px a step of ``J`` shows a gradient of ``J / 60`` per px, so an edge keeps
+#: ``0.7 J`` of its range over the window's diagonal. Measured with the default preset
+#: and `guided` on degraded maps (mean PSNR_ob, dB; photographs: PSNR against the
+#: true-disparity render and remnants against it; with a chain's one-pixel inside
+#: ramp): 4: Blender 29.86, constant cards 26.78, varying 30.81, photographs 40.26 dB /
+#: 604; 8: 29.76, 26.77, 30.98, 39.99 / 631; the code before the slope test: 29.62,
+#: 26.83, 31.00, 39.83 / 720.
+SLOPE_SCALE = 4
+
+
+def _edges(D, band, hi, lo, blur_parameter, radius, jump_px):
+    """``(edges, weight)``: the pixels of the uncertain ``band`` that lie at an edge, and
+    how much of the refinement each pixel takes.
+
+    A plane's disparity is linear in the image; near the camera it is steep enough that
+    its window spans more than ``jump_px`` of blur radius, and taken for an edge it was
+    cut into flat patches with steps between them (seams across a ground plane's
+    checks). A band pixel is at an edge when its window's range exceeds, by ``jump_px``
+    of blur radius, the range that a plane with the large-scale gradient spans over the
+    window's diagonal: ``A (max d - min d - 2 sqrt(2) r |grad(G_s * d)|) > jump_px``,
+    ``s = SLOPE_SCALE r`` (px). ``weight`` is twice the share of edge pixels in the
+    pixel's window, clipped to 1: where an edge fades into a slope, the refined values
+    fade into the input's instead of ending in a step.
+
+    The gradient is taken on ``D`` reduced 4 times (block means) and read back
+    bilinearly: on the scale ``s`` it is smooth."""
+    from scipy import ndimage
+
+    f = 4
+    H, W = D.shape
+    h, w = -(-H // f), -(-W // f)
+    small = np.pad(D, ((0, h * f - H), (0, w * f - W)), mode="edge")
+    small = small.reshape(h, f, w, f).mean(axis=(1, 3))
+    s = SLOPE_SCALE * radius / f
+    grad = np.hypot(ndimage.gaussian_filter(small, s, order=(1, 0), mode="nearest"),
+                    ndimage.gaussian_filter(small, s, order=(0, 1), mode="nearest"))
+    # the range that slope spans over the window's diagonal, in blur radius (px)
+    grad *= blur_parameter * 2.0 * math.sqrt(2.0) * radius / f
+    slope = ndimage.zoom(grad.astype(np.float32), f, order=1, grid_mode=True,
+                         mode="nearest")[:H, :W]
+    edges = band & (blur_parameter * (hi - lo) - slope > jump_px)
+    weight = np.clip(2.0 * box_mean(edges.astype(np.float32), radius), 0.0, 1.0)
+    return edges, weight
 
 
 def uncertain_band(disparity: np.ndarray, blur_parameter: float, radius: int = 6,
