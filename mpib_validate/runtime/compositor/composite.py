@@ -904,8 +904,9 @@ class _Chain:
         self.sum = None  # the chain's combined premultiplied colour and normaliser
         self.tiles = None
         self.last = None
-        self.layers, self.slab_of, self.reach, self.canvas = layers, slab_of, reach, canvas
+        self.canvas = canvas
         self.members = set()  # the slabs of the current chain
+        self.cover = None  # the sum of the chain's slabs' footprint alphas (canvas)
         self.last_sum = None  # the last slab as laid (frame-sized), on last_tiles
         self.last_tiles = None
         self.last_foot = None  # the last slab's _footprint
@@ -914,9 +915,10 @@ class _Chain:
             self.by_slab.setdefault(s, []).append((layer, r))
 
     def _footprint(self, slab) -> tuple:
-        """Where the slab's layers hold content: ``(alpha, cells)``, the sum of their
-        alphas (unblurred; canvas float32, padded to whole storage tiles) and, on
-        :data:`_ONE_CELL` px cells, where it is above 0."""
+        """Where the slab's layers hold content: ``(alpha, cells, box)``, the sum of
+        their alphas (unblurred; canvas float32, padded to whole storage tiles), on
+        :data:`_ONE_CELL` px cells where it is above 0, and the layers' union box
+        ``(y0, y1, x0, x1)`` (None without layers)."""
         f = _ONE_CELL
         H, W = self.canvas
         hc, wc = -(-H // f), -(-W // f)
@@ -926,12 +928,13 @@ class _Chain:
         layers = [layer for layer, _ in self.by_slab.get(slab, [])]
         for layer in layers:
             layer.add_channel(alpha, 3)
-        if layers:  # the cells of the layers' union box
-            cy0, cx0 = min(l.box[0] for l in layers) // f, min(l.box[2] for l in layers) // f
-            cy1 = -(-max(l.box[1] for l in layers) // f)
-            cx1 = -(-max(l.box[3] for l in layers) // f)
-            cells[cy0:cy1, cx0:cx1] = _cells(alpha[cy0 * f:cy1 * f, cx0 * f:cx1 * f] > 0)
-        return alpha, cells
+        if not layers:
+            return alpha, cells, None
+        box = (min(l.box[0] for l in layers), max(l.box[1] for l in layers),
+               min(l.box[2] for l in layers), max(l.box[3] for l in layers))
+        cy0, cx0, cy1, cx1 = box[0] // f, box[2] // f, -(-box[1] // f), -(-box[3] // f)
+        cells[cy0:cy1, cx0:cx1] = _cells(alpha[cy0 * f:cy1 * f, cx0 * f:cx1 * f] > 0)
+        return alpha, cells, box
 
     def _weights(self, slab, foot, tiles):
         """``(w, (cy0, cx0))``: on :data:`_ONE_CELL` px cells (from cell ``(cy0, cx0)``)
@@ -997,6 +1000,11 @@ class _Chain:
             self.last_sum = np.zeros_like(acc)
         m = self.m
         foot = self._footprint(slab)
+        if fresh:
+            self.cover = np.zeros_like(foot[0])
+        if foot[2] is not None:
+            y0, y1, x0, x1 = foot[2]
+            self.cover[y0:y1, x0:x1] += foot[0][y0:y1, x0:x1]
         if not fresh:
             cells, origin = self._weights(slab, foot, group_tiles)
         if self.last_tiles is not None:  # the last slab is zero where this one is not
@@ -1035,7 +1043,7 @@ class _Chain:
         _over_tiles(acc, self.sum, self.tiles, m, self.frame)
         for y0, y1, x0, x1 in _runs(self.last_tiles, _TILE, self.frame):
             self.last_sum[y0 - m:y1 - m, x0 - m:x1 - m] = 0.0
-        self.last_tiles = self.last_foot = None
+        self.last_tiles = self.last_foot = self.cover = None
         self.tiles = None
         self.members = set()
 
@@ -1063,14 +1071,7 @@ class _Chain:
         R = max(r for s in self.members for _, r in self.by_slab.get(s, []))
         if 2 * R >= min(y1 - y0, x1 - x0):
             return None
-        cover = np.zeros((y1 - y0, x1 - x0), np.float32)
-        a = np.empty_like(cover)
-        for s in self.members:
-            for l, _ in self.by_slab.get(s, []):
-                a[...] = 0.0
-                l.read(a, y0, x0, channel=3)
-                cover += a
-        solid = cover >= np.float32(1.0 - 1e-3)
+        solid = self.cover[y0:y1, x0:x1] >= np.float32(1.0 - 1e-3)
         # the compositor continues content at the canvas edge outward: so does the mask
         pad = [(0 if y0 == 0 else 1, 0 if y1 == self.canvas[0] else 1),
                (0 if x0 == 0 else 1, 0 if x1 == self.canvas[1] else 1)]
