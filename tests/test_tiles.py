@@ -66,6 +66,9 @@ def test_adding_a_channel_equals_reading_it(smooth_mpi):
         y0, y1, x0, x1 = l.box
         l.read(ref[y0:y1, x0:x1], y0, x0, channel=3)
         np.testing.assert_array_equal(out, ref + np.float32(0.25))
+        if l.tiles is not None:  # a tiled layer's tiles need the storage grid
+            with pytest.raises(ValueError, match="storage tile"):
+                l.add_channel(np.zeros((out.shape[0] + 1, out.shape[1]), np.float32), 3)
     assert kinds == {True, False}, kinds
 
 

@@ -375,8 +375,8 @@ REFINE_TARGET_S = 1.5
 REMNANT_TARGET = 2e-4
 #: Light patches in blurred hair (``remnants.light_patches``): at most this share of the
 #: head's inside visibly (10 display levels) lighter than the unrefined output, which
-#: has no hidden background behind the hair. What the check leaves is within about 1.5
-#: blur radii of the outline, where the refined edge is not the unrefined one (0.5 %).
+#: has no hidden background behind the hair. What the check leaves is within about a
+#: blur radius of the outline, where the refined edge is not the unrefined one (0.22 %).
 PATCH_TARGET = 0.01
 
 

@@ -151,11 +151,8 @@ class Layer:
         keys, data = self.tiles
         T = data.shape[1]
         if out.shape[0] % T or out.shape[1] % T:
-            a = np.zeros(self._shape[:2], np.float32)
-            y0, y1, x0, x1 = self.box
-            self.read(a, y0, x0, channel=channel)
-            out[y0:y1, x0:x1] += a
-            return
+            raise ValueError(f"add_channel: out's sides {out.shape} are not multiples "
+                             f"of the storage tile ({T} px)")
         grid = out.reshape(out.shape[0] // T, T, out.shape[1] // T, T).swapaxes(1, 2)
         grid[keys[:, 0], keys[:, 1]] += data[..., channel]  # stored tiles are distinct
 
