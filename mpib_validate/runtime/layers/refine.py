@@ -178,13 +178,12 @@ def refine_disparity(colour: np.ndarray, disparity: np.ndarray, blur_parameter: 
     # the band's own window) keeps its side instead of making a false edge inside an
     # object, where the colour of a texture would then flip pixels
     wide = 2 * (radius + min(flip_px, radius)) + 1
-    m = D > 0.5 * (ndimage.maximum_filter(D, wide, mode="nearest")
-                   + ndimage.minimum_filter(D, wide, mode="nearest"))
+    m = D > 0.5 * np.add(*_max_min(D, wide))
     # the colour may move the side only within flip_px of the predicted edge: deeper
     # inside, a texture whose colours straddle the other side's (red and cyan stripes
     # before a grey wall) would flip under the guided filter's linear colour model
     f = 2 * flip_px + 1
-    zone = band & (ndimage.maximum_filter(m, f) != ndimage.minimum_filter(m, f))
+    zone = band & np.not_equal(*_max_min(m, f))
     q = np.zeros(D.shape)
     margin = 2 * guide_radius  # q at a pixel depends on the guide within 2 r of it
 
@@ -326,6 +325,8 @@ def _no_new_slivers(R: np.ndarray, D: np.ndarray, band: np.ndarray, blur_paramet
             cl = ndimage.grey_closing(r, (3, 3), mode="nearest")
             bump = b & (blur_parameter * (r - op) > SLIVER_JUMP * jump_px) & (d_bump <= limit)
             dip = b & (blur_parameter * (cl - r) > SLIVER_JUMP * jump_px) & (d_dip <= limit)
+            if not (bump.any() or dip.any()):
+                break  # a pass that changes nothing leaves the next one nothing to change
             r = np.where(bump, op, np.where(dip, cl, r))
         return r[inner]
 
@@ -352,23 +353,25 @@ def _outside_sides(D, band, hi, lo, reach):
     the nearest pixel outside the band whose disparity lies above (below or at) the
     mid-level ``(hi + lo) / 2`` of the band pixel nearest to it, where one lies within
     ``reach`` px; else ``hi`` (``lo``). Clipped to ``[lo, hi]``. Exact Euclidean nearest
-    (scipy's distance transform), computed on the boxes of the band's tiles grown by
+    (scipy's feature transform), computed on the boxes of the band's tiles grown by
     ``2 reach``, which hold every pixel that the answer depends on (up to ties between
     equidistant pixels)."""
     hi_side, lo_side = hi.copy(), lo.copy()
 
     def block(item):
-        _, sub, inner = item
-        h, l = _outside_sides_box(D[sub], band[sub], hi[sub], lo[sub], reach)
-        return h[inner], l[inner]
+        out, sub, inner = item
+        return _outside_sides_box(D[sub], band[sub], hi[sub], lo[sub], reach, inner)
 
     blocks = list(_blocks(band, 2 * int(np.ceil(reach))))
-    for (out, _, _), (h, l) in zip(blocks, _map_blocks(block, blocks)):
-        hi_side[out], lo_side[out] = h, l
+    for (out, _, _), (at, h, l) in zip(blocks, _map_blocks(block, blocks)):
+        hi_side[out][at], lo_side[out][at] = h, l
     return hi_side, lo_side
 
 
-def _outside_sides_box(D, band, hi, lo, reach):
+def _outside_sides_box(D, band, hi, lo, reach, inner=(slice(0, None), slice(0, None))):
+    """:func:`_outside_sides` on one box: ``(at, hi_side, lo_side)``, the band pixels of
+    its ``inner`` part (a pair of slices; index arrays into that part) and their two side
+    values."""
     from scipy import ndimage
 
     mid = 0.5 * (hi + lo)
@@ -376,28 +379,39 @@ def _outside_sides_box(D, band, hi, lo, reach):
                                                   return_indices=True)
     mid_outside = mid[tuple(nearest_band)]
     del nearest_band
+    at = np.nonzero(band[inner])
+    y = at[0] + inner[0].start
+    x = at[1] + inner[1].start
     out = []
     for upper, fallback in ((True, hi), (False, lo)):
         sel = ~band & ((D > mid_outside) if upper else (D <= mid_outside))
         if not sel.any():
-            out.append(fallback)
+            out.append(fallback[y, x])
             continue
-        dist, idx = ndimage.distance_transform_edt(~sel, return_indices=True)
-        value = np.where(dist <= reach, D[tuple(idx)], fallback)
-        out.append(np.clip(value, lo, hi))
-    return out[0], out[1]
+        iy, ix = ndimage.distance_transform_edt(~sel, return_distances=False,
+                                                return_indices=True)[:, y, x]
+        # the Euclidean distance as scipy's transform gives it, at the band pixels only
+        dist = np.sqrt(((iy - y) ** 2 + (ix - x) ** 2).astype(np.float64))
+        value = np.where(dist <= reach, D[iy, ix], fallback[y, x])
+        out.append(np.clip(value, lo[y, x], hi[y, x]))
+    return at, out[0], out[1]
 
 
 def _window_sides(D: np.ndarray, blur_parameter: float, radius: int, jump_px: float):
     """``(hi, lo, band)``: the maximum and minimum of ``D`` over each pixel's
     ``(2 radius + 1)^2`` window, and the uncertain band where they differ by more than
     ``jump_px`` of blur radius (``A (hi - lo) > jump_px``)."""
+    hi, lo = _max_min(D, 2 * radius + 1)
+    return hi, lo, blur_parameter * (hi - lo) > jump_px
+
+
+def _max_min(x: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """The maximum and the minimum of ``x`` over each pixel's ``size x size`` window
+    (the border repeated), the two filters on two threads where there are cores."""
     from scipy import ndimage
 
-    size = 2 * radius + 1
-    hi = ndimage.maximum_filter(D, size, mode="nearest")
-    lo = ndimage.minimum_filter(D, size, mode="nearest")
-    return hi, lo, blur_parameter * (hi - lo) > jump_px
+    return tuple(_map_blocks(lambda f: f(x, size, mode="nearest"),
+                             [ndimage.maximum_filter, ndimage.minimum_filter]))
 
 
 #: The large scale (px, a multiple of the band's ``radius``) over which a smooth slope
