@@ -511,7 +511,8 @@ def test_sharp_edges_see_a_step_in_the_blur_and_not_a_blurred_one():
 
 def test_remnant_table_and_crops_on_one_shipped_photograph(tmp_path):
     """The photos suite's remnant part on scikit-image's cat (451x300): a row per focus,
-    counts within their must-blur regions, the crops figure with four columns."""
+    counts within their must-blur regions, the matting variant's columns, the crops
+    figure with five columns (input, default, refinement off, matting, truth)."""
     from PIL import Image
 
     from mpib_validate.bench import remnants
@@ -524,10 +525,13 @@ def test_remnant_table_and_crops_on_one_shipped_photograph(tmp_path):
         assert 0 <= row["edges_both"] <= row["must_blur_both"]
         assert 0 <= row["edges_true"] <= row["must_blur_true"]
         assert 0 <= row["remnants_true"] <= row["must_blur_true"] > 0
-        assert row["psnr_guided"] > 30 and row["psnr_off"] > 30
+        assert row["psnr_guided"] > 30 and row["psnr_off"] > 30 and row["psnr_matting"] > 30
+        assert 0 <= row["remnants_both_matting"] <= row["must_blur_both"]
+        assert 0 <= row["remnants_true_matting"] <= row["must_blur_true"]
     with Image.open(tmp_path / "remnants.png") as im:
-        assert im.width == 3 * 4 * (48 + 4) and im.height == 3 * 2 * (48 + 4)
-    assert "| chelsea (451x300) | near |" in "\n".join(remnants.markdown(r))
+        assert im.width == 3 * 5 * (48 + 4) and im.height == 3 * 2 * (48 + 4)
+    md = "\n".join(remnants.markdown(r))
+    assert "| chelsea (451x300) | near |" in md and "PSNR matting |" in md
 
 
 def test_shipped_photographs_meet_the_remnant_target():
@@ -663,3 +667,47 @@ def test_no_light_patches_in_blurred_hair_with_a_network_resolution_map():
     lp = remnants.light_patches()
     assert lp["head_px"] > 10000, lp
     assert lp["share"] <= PATCH_TARGET, lp
+
+
+def test_matting_variant_mattes_the_band_around_the_jumps_only():
+    """The bench's matting variant (`bench.matting`): on a soft colour edge (a 5 px linear
+    mix of a near red and a far blue surface, the disparity stepping in its middle) the
+    closed-form matte gives the nearer layer the mix's alpha, and the layers away from
+    the band are the default's."""
+    import dataclasses
+
+    from mpib_validate.bench.matting import BAND_PX, matte_sheets
+    from mpib_validate.runtime.layers.mpi import Pixels, Sheet
+    from mpib_validate.runtime.layers.passes import sheets_from_passes
+    from mpib_validate.runtime.presets import PRESETS
+
+    colour, D = _two_regions(edge=32)
+    red, blue = np.array((0.6, 0.15, 0.1)), np.array((0.1, 0.2, 0.5))
+    mix = np.clip((34.5 - np.arange(64)) / 5.0, 0.0, 1.0)  # 1 up to column 30, 0 from 35
+    colour = (mix[None, :, None] * red + (1 - mix[None, :, None]) * blue) * np.ones((64, 1, 1))
+    settings = PRESETS["default"].passes
+    A = 40.0
+    sheets = matte_sheets(colour, D, A, settings)
+    default, _ = sheets_from_passes(colour, D, A, dataclasses.replace(settings, refine="off"))
+    band = np.abs(np.arange(64) - 31.5) <= BAND_PX + 0.5  # columns within 4 px of the jump
+    matte = sheets[-1]
+    assert isinstance(matte, Pixels)
+    cols = matte.index % 64
+    assert set(np.unique(cols)) == set(np.flatnonzero(band))
+    # the matte's alpha follows the mix. The matte's colour model is linear in display
+    # values, the mix in linear ones: projected onto the line between the two display
+    # colours, the mix bends by at most 0.033 between these two; 0.01 more for the
+    # Laplacian's smoothing over its 3x3 windows (measured: 0.036 at most)
+    for c in np.flatnonzero(band):
+        a = matte.alpha[cols == c]
+        assert abs(np.median(a) - mix[c]) < 0.045, (c, np.median(a), mix[c])
+    # its nearer layer at the near surface's disparity, the farther at the far one's
+    assert np.allclose(matte.disparity, 0.5)
+    i = next(i for i, sh in enumerate(sheets) if isinstance(sh, Sheet))
+    far = sheets[i - 1]  # the matte's background, just below the visible sheet
+    assert np.array_equal(far.index, matte.index) and np.allclose(far.disparity, 0.1)
+    # away from the band the visible sheet is the default's
+    shown = sheets[i]
+    shown_default = next(sh for sh in default if isinstance(sh, Sheet))
+    assert np.array_equal(shown.alpha[:, ~band], shown_default.alpha[:, ~band])
+    assert np.all(shown.alpha[:, band] == 0)

@@ -133,14 +133,20 @@ def _render(lin, D, K, d_f, refine):
 
     p = PRESETS["default"]
     mpi, _ = layers_from_passes(lin, D, K, dataclasses.replace(p.passes, refine=refine))
-    out = render_subapertures(mpi, K, d_f, p.subapertures, p.composite)[..., :3]
-    return np.round(np.clip(out, 0.0, 1.0) ** (1 / GAMMA) * 255) / 255
+    return _display(render_subapertures(mpi, K, d_f, p.subapertures, p.composite)[..., :3])
 
 
-def photo_rows(name: str, outputs: dict | None = None) -> list[dict]:
+def _display(linear):
+    """Display values (8-bit levels in [0, 1]) of a linear render, gamma :data:`GAMMA`."""
+    return np.round(np.clip(linear, 0.0, 1.0) ** (1 / GAMMA) * 255) / 255
+
+
+def photo_rows(name: str, outputs: dict | None = None, matting: bool = False) -> list[dict]:
     """One row per focus of photograph ``name``: the must-blur pixel counts, the remnants
     of the default (guided) and of the unrefined result, and their PSNR against the
-    reference (display values, dB). ``outputs``, if given, receives the images."""
+    reference (display values, dB). ``outputs``, if given, receives the images. With
+    ``matting``, the same for the matting variant
+    (:func:`mpib_validate.bench.matting.matte_render`; needs pymatting)."""
     from mpib_validate.metrics import psnr, sharp_edges, sharp_remnants
     from mpib_validate.runtime.layers.refine import refine_disparity
 
@@ -161,6 +167,16 @@ def photo_rows(name: str, outputs: dict | None = None) -> list[dict]:
         edge_both, _ = sharp_edges(guided, off, (N, refined), K, d_f)
         edge_t, _ = sharp_edges(guided, ref, Dt, K, d_f)
         edge_off, _ = sharp_edges(off, ref, Dt, K, d_f)
+        extra = {}
+        if matting:
+            from mpib_validate.bench.matting import matte_render
+
+            matted = _display(matte_render(lin, N, K, d_f, GAMMA))
+            extra = {"remnants_both_matting": int(sharp_remnants(matted, off, (N, refined), K,
+                                                                 d_f)[0].sum()),
+                     "remnants_true_matting": int(sharp_remnants(matted, ref, Dt, K,
+                                                                 d_f)[0].sum()),
+                     "psnr_matting": psnr(ref, matted)}
         rows.append({"photo": name, "focus": focus, "K": K, "disp_focus": d_f,
                      "width": Dt.shape[1], "height": Dt.shape[0],
                      "must_blur_input": int(must_in.sum()), "remnants_input": int(rem_in.sum()),
@@ -169,17 +185,20 @@ def photo_rows(name: str, outputs: dict | None = None) -> list[dict]:
                      "remnants_true_off": int(rem_off.sum()),
                      "edges_both": int(edge_both.sum()), "edges_true": int(edge_t.sum()),
                      "edges_true_off": int(edge_off.sum()),
-                     "psnr_guided": psnr(ref, guided), "psnr_off": psnr(ref, off)})
+                     "psnr_guided": psnr(ref, guided), "psnr_off": psnr(ref, off), **extra})
         if outputs is not None:
             outputs[(name, focus)] = {"input": img / 255.0, "default": guided, "off": off,
                                       "reference": ref, "remnants": rem_t, "disparity": N}
+            if matting:
+                outputs[(name, focus)]["matting"] = matted
     return rows
 
 
 def crops_figure(outputs: dict, path: Path, crop: int = 48) -> list[dict]:
     """Boundary crops (x3): per photograph and focus, the ``crop`` px window holding the
     most true-disparity remnants of the default (else the strongest disparity edge);
-    columns: input, default (guided), refinement off, true-disparity reference."""
+    columns: input, default (guided), refinement off, the matting variant (where the
+    outputs hold it), true-disparity reference."""
     from PIL import Image
     from scipy import ndimage
 
@@ -197,7 +216,7 @@ def crops_figure(outputs: dict, path: Path, crop: int = 48) -> list[dict]:
         where.append({"photo": name, "focus": focus, "centre": [int(y), int(x)]})
         tiles = [np.pad((np.clip(o[k][y - h:y + h, x - h:x + h], 0, 1) * 255).astype(np.uint8),
                         ((2, 2), (2, 2), (0, 0)), constant_values=255)
-                 for k in ("input", "default", "off", "reference")]
+                 for k in ("input", "default", "off", "matting", "reference") if k in o]
         rows.append(np.concatenate(tiles, axis=1))
     fig = Image.fromarray(np.concatenate(rows, axis=0))
     fig = fig.resize((fig.width * 3, fig.height * 3), Image.NEAREST)
@@ -246,11 +265,12 @@ def light_patches() -> dict:
             "max_levels": float(lighter[head].max())}
 
 
-def run(out: Path | None = None, photos=PHOTOS) -> dict:
-    """The remnant table (rows per photograph and focus), the light-patch check
-    (:func:`light_patches`) and, with ``out``, the crops figure ``out / "remnants.png"``."""
+def run(out: Path | None = None, photos=PHOTOS, matting: bool = True) -> dict:
+    """The remnant table (rows per photograph and focus; with ``matting``, the matting
+    variant's columns too), the light-patch check (:func:`light_patches`) and, with
+    ``out``, the crops figure ``out / "remnants.png"``."""
     outputs = {} if out is not None else None
-    rows = [r for name in photos for r in photo_rows(name, outputs)]
+    rows = [r for name in photos for r in photo_rows(name, outputs, matting)]
     result = {"rows": rows}
     if "astronaut" in photos:
         result["light_patches"] = light_patches()
@@ -280,12 +300,17 @@ def markdown(result: dict) -> list[str]:
     def share(n, of):
         return f"{n} ({100 * n / max(1, of):.3f} %)"
 
+    if any("psnr_matting" in r for r in result["rows"]):
+        lines[-2] += " matting: remnants vs off, both | matting vs truth | PSNR matting |"
+        lines[-1] += "---|---|---|"
     for r in result["rows"]:
+        matted = (f" {r['remnants_both_matting']} | {r['remnants_true_matting']} | "
+                  f"{r['psnr_matting']:.2f} |" if "psnr_matting" in r else "")
         lines.append(f"| {r['photo']} ({r['width']}x{r['height']}) | {r['focus']} | "
                      f"{r['K']:.1f} | {share(r['remnants_both'], r['must_blur_both'])} | "
                      f"{share(r['remnants_input'], r['must_blur_input'])} | "
                      f"{r['must_blur_true']} | {r['remnants_true']} | {r['remnants_true_off']} | "
-                     f"{r['psnr_guided']:.2f} | {r['psnr_off']:.2f} |")
+                     f"{r['psnr_guided']:.2f} | {r['psnr_off']:.2f} |" + matted)
     lines += ["", "Sharp edges inside the blur (`metrics.sharp_edges`: a step, gradient above "
               "0.4 of its 5x5 window's range, that the reference does not have within a "
               "pixel; the strips and gaps that the top-hat does not count), same regions:", "",
@@ -308,6 +333,8 @@ def markdown(result: dict) -> list[str]:
     if fig:
         lines += ["", "Boundary crops (x3), one row per photograph and focus (near, far), at "
                   "the window with the most remnants against the truth (else the strongest "
-                  "disparity edge); columns: input, default, refinement off, true-disparity "
-                  "render.", "", f"![remnants]({fig['path']})"]
+                  "disparity edge); columns: input, default, refinement off, "
+                  + ("the matting variant (`bench.matting`), "
+                     if any("psnr_matting" in r for r in result["rows"]) else "")
+                  + "true-disparity render.", "", f"![remnants]({fig['path']})"]
     return lines + [""]
