@@ -30,10 +30,11 @@ BAND_PX = 4
 
 def matte_sheets(colour: np.ndarray, disparity: np.ndarray, blur_parameter: float,
                  settings, gamma: float = 2.2) -> list:
-    """The default's sheets of ``colour`` (``(H, W, 3)`` linear) over the already refined
-    ``disparity`` (``settings.refine`` is not applied again), with the band around its
-    jumps matted (see the module docstring). The matte is computed on the display values
-    ``clip(colour, 0, 1)^(1 / gamma)``, where a photograph's colour model holds."""
+    """The default's sheets of ``colour`` (``(H, W, 3+)`` linear; the first three
+    channels are used) over the already refined ``disparity`` (``settings.refine`` is
+    not applied again), with the band around its jumps matted (see the module
+    docstring). The matte is computed on the display values ``clip(colour, 0, 1)^(1 /
+    gamma)``, where a photograph's colour model holds."""
     from pymatting import estimate_alpha_cf, estimate_foreground_ml
     from scipy import ndimage
 
@@ -41,6 +42,7 @@ def matte_sheets(colour: np.ndarray, disparity: np.ndarray, blur_parameter: floa
     from mpib_validate.runtime.layers.mpi import Pixels, Sheet
     from mpib_validate.runtime.layers.passes import sheets_from_passes
 
+    colour = np.asarray(colour, np.float64)[..., :3]
     D = np.asarray(disparity, np.float64)
     sheets, _ = sheets_from_passes(colour, D, blur_parameter,
                                    dataclasses.replace(settings, refine="off"))
@@ -58,7 +60,7 @@ def matte_sheets(colour: np.ndarray, disparity: np.ndarray, blur_parameter: floa
     known_far = ~band & ~known_near
     if not (known_near.any() and known_far.any()):
         return sheets
-    display = np.clip(np.asarray(colour, np.float64)[..., :3], 0.0, 1.0) ** (1.0 / gamma)
+    display = np.clip(colour, 0.0, 1.0) ** (1.0 / gamma)
     trimap = np.where(band, 0.5, known_near.astype(np.float64))
     alpha = np.clip(estimate_alpha_cf(display, trimap), 0.0, 1.0)
     fg, bg = estimate_foreground_ml(display, alpha, return_background=True)
