@@ -84,20 +84,19 @@ def matte_sheets(colour: np.ndarray, disparity: np.ndarray, blur_parameter: floa
     return out
 
 
-def matte_render(colour: np.ndarray, disparity: np.ndarray, blur_parameter: float,
+def matte_render(colour: np.ndarray, refined: np.ndarray, blur_parameter: float,
                  focus: float, gamma: float = 2.2) -> np.ndarray:
-    """The default preset's refocus (``(H, W, 3)`` linear) of ``colour`` with the
-    default refinement of ``disparity`` and the band around its jumps matted
-    (:func:`matte_sheets`); ``blur_parameter`` is ``K`` (px per unit disparity),
-    ``focus`` the disparity in focus."""
+    """The default preset's refocus (``(H, W, 3)`` linear) of ``colour`` over ``refined``,
+    a disparity the default refinement has already refined
+    (:func:`mpib_validate.runtime.layers.refine.refine_disparity`), with the band around
+    its jumps matted (:func:`matte_sheets`); ``blur_parameter`` is ``K`` (px per unit
+    disparity), ``focus`` the disparity in focus."""
     from mpib_validate.runtime.compositor.composite import render_subapertures
     from mpib_validate.runtime.layers.passes import mpi_from_sheets
-    from mpib_validate.runtime.layers.refine import refine_disparity
     from mpib_validate.runtime.presets import PRESETS
 
     p = PRESETS["default"]
-    refined = refine_disparity(colour, disparity, blur_parameter)
     sheets = matte_sheets(colour, refined, blur_parameter, p.passes, gamma)
-    mpi = mpi_from_sheets(sheets, blur_parameter, p.passes, *refined.shape)
+    mpi = mpi_from_sheets(sheets, blur_parameter, p.passes, *np.shape(refined))
     return render_subapertures(mpi, blur_parameter, focus, p.subapertures,
                                p.composite)[..., :3]

@@ -171,7 +171,7 @@ def photo_rows(name: str, outputs: dict | None = None, matting: bool = False) ->
         if matting:
             from mpib_validate.bench.matting import matte_render
 
-            matted = _display(matte_render(lin, N, K, d_f, GAMMA))
+            matted = _display(matte_render(lin, refined, K, d_f, GAMMA))
             extra = {"remnants_both_matting": int(sharp_remnants(matted, off, (N, refined), K,
                                                                  d_f)[0].sum()),
                      "remnants_true_matting": int(sharp_remnants(matted, ref, Dt, K,
