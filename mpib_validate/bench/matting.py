@@ -6,7 +6,8 @@ wider band instead: pymatting's closed-form matte (Levin, Lischinski and Weiss, 
 2008: ``alpha`` minimises ``alpha^T L alpha`` with the matting Laplacian ``L`` of 3x3
 windows, in which the colour is locally a linear function of ``alpha``) in the pixels
 within :data:`BAND_PX` of the refined map's jumps, the pixels beyond the band known near
-or far by the side of their nearest jump; its foreground and background colours by
+or far as the layer builder tells them (in front of the far side of the nearest edge, or
+not); its foreground and background colours by
 ``estimate_foreground_ml`` (Germer et al. 2020). In the band the nearer layer gets the
 foreground colour with ``alpha`` at the nearest known near pixel's disparity, the
 farther layer the background colour (alpha 1) at the nearest known far pixel's; the
@@ -46,17 +47,16 @@ def matte_sheets(colour: np.ndarray, disparity: np.ndarray, blur_parameter: floa
     D = np.asarray(disparity, np.float64)
     sheets, _ = sheets_from_passes(colour, D, blur_parameter,
                                    dataclasses.replace(settings, refine="off"))
-    seed, far, near = _fill.disparity_jumps(D, settings.jump_px / blur_parameter)
-    jump = seed | np.isfinite(near)
+    thr = settings.jump_px / blur_parameter
+    jumps = _fill.disparity_jumps(D, thr)
+    jump = jumps[0] | np.isfinite(jumps[2])  # both sides of every jump
     if not jump.any():
         return sheets
-    # each jump pixel's mid-level between its two sides; a pixel beyond the band is near
-    # when it lies above the mid-level of its nearest jump pixel
-    mid = np.where(seed, 0.5 * (D + np.where(seed, far, 0.0)),
-                   0.5 * (D + np.where(jump & ~seed, near, 0.0)))
-    dist, (iy, ix) = ndimage.distance_transform_edt(~jump, return_indices=True)
-    band = dist <= BAND_PX
-    known_near = ~band & (D > mid[iy, ix])
+    band = ndimage.distance_transform_edt(~jump) <= BAND_PX
+    # beyond the band, a pixel's side as the layer builder tells it: near when in front
+    # of the far side of its nearest near-side jump pixel
+    _, far_field = _fill.occlusion_region(D, blur_parameter, thr, jumps=jumps)
+    known_near = ~band & (D > far_field + 0.5 * thr)
     known_far = ~band & ~known_near
     if not (known_near.any() and known_far.any()):
         return sheets
