@@ -618,6 +618,17 @@ def test_scope_scores_and_targets_on_a_synthetic_pair():
     # the wire's hard sides and the line's flanks are steps the smooth truth does not have
     assert s["edges"] > 0
     assert scope_scores(truth, truth + 0.01, mask, ex, D, A, d_f)["edges"] == 0
+    # the photographs' region: where both maps blur; against the truth and against the
+    # unrefined output, which counts only a line that output does not have itself
+    s2 = scope_scores(truth, out, mask, ex, D, A, d_f, (D, D), truth + 0.01)
+    assert s2["remnants_maps"] == s2["remnants_maps_off"] == 14
+    assert s2["must_blur_maps"] == s["must_blur"]
+    assert scope_scores(truth, out, mask, ex, D, A, d_f, (D, D), out)["remnants_maps_off"] == 0
+    R = D.copy()
+    R[35:46] = d_f  # a refined map that puts the line's rows in focus: it may stay sharp
+    s3 = scope_scores(truth, out, mask, ex, D, A, d_f, (D, R), truth + 0.01)
+    assert s3["remnants_maps"] == s3["remnants_maps_off"] == 0
+    assert 0 < s3["must_blur_maps"] < s["must_blur"]
     rows = [{"scene": sc, "method": m, "psnr_ob": ob, "psnr_ob_scoped": sv, "scoped_fraction": 0.5}
             for sc, vals in (("a", (30.0, 28.0, 23.0)), ("b", (30.0, 26.0, 23.0)))
             for m, sv, ob in zip(("exact", "guided", "node"), vals, (30.0, 20.0, 18.0))]
@@ -628,6 +639,22 @@ def test_scope_scores_and_targets_on_a_synthetic_pair():
     assert sm["scoped"]["over_node_fails"] == {"b": 3.0}
     assert not sm["unmasked"]["within_met"] and not sm["unmasked"]["over_node_met"]
     assert "fails on b -4.0" in sm["headline"] and "missed" in sm["headline"]
+    # the remnant summary's verdict in the photographs' region: at most 0.02 % of it
+    from mpib_validate.bench.photos import remnant_summary
+
+    def summary(n_off):
+        rows = [{"scene": sc, "method": m, "remnants": 1, "must_blur": 500,
+                 "must_blur_smooth": 400, "remnants_maps": 1, "must_blur_maps": 10000,
+                 **({"remnants_maps_off": n_off} if m == "guided" else {})}
+                for sc in ("a", "b") for m in ("exact", "guided")]
+        return remnant_summary(rows, "toy", ("exact", "guided"), "guided", "exact")
+
+    met, missed = summary(2), summary(3)
+    assert met["methods"]["guided"]["remnants_maps_off"] == 4
+    assert met["methods"]["guided"]["must_blur_maps"] == 20000
+    assert "4 (0.020 %) against the unrefined output (target 0.02 %: met)" in met["headline"]
+    assert "6 (0.030 %)" in missed["headline"] and "missed" in missed["headline"]
+    assert "exact-depth control 2 against the truth" in met["headline"]
 
 
 def test_refine_cost_measures_the_whole_refocus_at_the_size_asked():

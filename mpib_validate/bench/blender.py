@@ -211,15 +211,15 @@ def degraded_images(sc, passes, A: float, d_f: float) -> dict:
     guided-thin) and the Defocus node on the same degraded depth (when bpy is there)."""
     import importlib.util
 
-    from mpib_validate.bench.photos import disparity_to_depth, oracle_disparities
+    from mpib_validate.bench.photos import (degraded_input, disparity_to_depth,
+                                            oracle_disparities)
     from mpib_validate.blender.scenes import lens
-    from mpib_validate.cards.degrade import degrade_disparity
     from mpib_validate.runtime.layers.passes import depth_to_disparity
     from mpib_validate.runtime.refocus import refocus
     from mpib_validate.runtime.request import RefocusRequest
 
     D = depth_to_disparity(passes.depth, source=passes.depth_source)
-    Dg = degrade_disparity(D, degraded_seed(sc))
+    Dg = degraded_input(D, degraded_seed(sc))
     depth_g = disparity_to_depth(Dg)
     pg = replace(passes, depth=depth_g, disparity=Dg)
     out = {}
@@ -267,7 +267,7 @@ def scene_rows(sc, images: dict) -> list[dict]:
     (:func:`mpib_validate.bench.photos.scope_scores`: outside the HDR highlights of the
     sharp pass and the structures under 3 px wide of its Z pass's disparity)."""
     from mpib_validate import metrics
-    from mpib_validate.bench.photos import scope_scores
+    from mpib_validate.bench.photos import degraded_input, refined_input, scope_scores
     from mpib_validate.cards.evaluate import score
     from mpib_validate.runtime.layers.passes import depth_to_disparity
 
@@ -275,13 +275,20 @@ def scene_rows(sc, images: dict) -> list[dict]:
     mask = boundary_mask(sc.depth, m["A"], m["d_f"])
     D = depth_to_disparity(sc.depth)
     excl = metrics.degraded_scope_exclusion(sc.colour, D, m["A"], m["d_f"])
+    # the photographs' remnant region: where the degraded map and its refinement blur
+    maps, unrefined = None, None
+    if DEGRADED in images:
+        Dg = degraded_input(D, degraded_seed(sc))
+        maps, unrefined = (Dg, refined_input(sc.colour, Dg, m["A"])), images[DEGRADED][0]
     label = f"{sc.spec.kind}-{sc.spec.focus}"
     base = {"scene": label, "kind": sc.spec.kind, "focus": sc.spec.focus, "family": "blender"}
     rows = []
     for method, (img, seconds) in images.items():
         rows.append({**base, "method": method, "seconds": float(seconds),
                      **score(sc.truth, img, mask, with_flip=False),
-                     **scope_scores(sc.truth, img, mask, excl, D, m["A"], m["d_f"])})
+                     **scope_scores(sc.truth, img, mask, excl, D, m["A"], m["d_f"], maps,
+                                    unrefined if "degraded" in method and method != DEGRADED
+                                    else None)})
     a, b = (np.clip(s, 0, 1) for s in sc.seeds)
     gain = 20.0 * math.log10(2.0)
     rows.append({**base, "method": "truth noise floor", "seconds": 0.0,
@@ -569,7 +576,7 @@ def _summarise(result) -> dict:
     scope = scope_summary(rows, "Blender scenes", DEFAULT, DEGRADED_GUIDED, NODE_DEGRADED)
     if scope:
         heads.append(scope["headline"])
-    rem = remnant_summary(rows, "Blender scenes", REMNANT_METHODS)
+    rem = remnant_summary(rows, "Blender scenes", REMNANT_METHODS, DEGRADED_GUIDED, DEFAULT)
     if rem.get("methods"):
         heads.append(rem["headline"])
     g = {r["method"]: r for r in table}

@@ -144,7 +144,8 @@ SCOPE_WITHIN_DB = 3.0
 SCOPE_OVER_NODE_DB = 4.0
 
 
-def scope_scores(truth, out, mask, exclusion, disparity, A: float, d_f: float) -> dict:
+def scope_scores(truth, out, mask, exclusion, disparity, A: float, d_f: float,
+                 maps=None, unrefined=None) -> dict:
     """The re-scoped figures of one output against the truth (both linear RGB):
 
     - ``psnr_ob_scoped``: PSNR (dB, colour clipped to [0, 1]) over ``mask & ~exclusion``
@@ -157,7 +158,13 @@ def scope_scores(truth, out, mask, exclusion, disparity, A: float, d_f: float) -
       (3x3 top-hat below :data:`metrics.REMNANT_SMOOTH`), the only ones that can count:
       a truth's Monte Carlo noise hides the rest;
     - ``edges``: :func:`metrics.sharp_edges`, steps inside the same region that the
-      truth does not have within a pixel."""
+      truth does not have within a pixel;
+    - with ``maps`` (the degraded input map and its refinement, :func:`refined_input`):
+      ``remnants_maps`` and ``must_blur_maps``, the remnants against the truth where both
+      maps blur by more than 6 px (the photographs' region: lines drawn into a blur that
+      the user's map asks for), and with ``unrefined`` (the output of the same input
+      with the refinement off, linear RGB) ``remnants_maps_off``, against that output
+      in the same region (the photographs' measure, which needs no truth)."""
     from mpib_validate.runtime.io.preview import srgb_encode
 
     t = np.clip(np.asarray(truth, np.float64)[..., :3], 0, 1)
@@ -167,10 +174,26 @@ def scope_scores(truth, out, mask, exclusion, disparity, A: float, d_f: float) -
     rem, must = metrics.sharp_remnants(oe, te, disparity, A, d_f)
     smooth = must & (metrics.thin_structure(te) < metrics.REMNANT_SMOOTH)
     edges, _ = metrics.sharp_edges(oe, te, disparity, A, d_f)
-    return {"edges": int(edges.sum()),"psnr_ob_scoped": metrics.psnr(t, o, keep),
-            "scoped_fraction": float(keep.sum() / max(1, int(mask.sum()))),
-            "remnants": int(rem.sum()), "must_blur": int(must.sum()),
-            "must_blur_smooth": int(smooth.sum())}
+    out = {"edges": int(edges.sum()), "psnr_ob_scoped": metrics.psnr(t, o, keep),
+           "scoped_fraction": float(keep.sum() / max(1, int(mask.sum()))),
+           "remnants": int(rem.sum()), "must_blur": int(must.sum()),
+           "must_blur_smooth": int(smooth.sum())}
+    if maps is not None:
+        rem_m, must_m = metrics.sharp_remnants(oe, te, maps, A, d_f)
+        out.update(remnants_maps=int(rem_m.sum()), must_blur_maps=int(must_m.sum()))
+        if unrefined is not None:
+            ue = srgb_encode(np.clip(np.asarray(unrefined, np.float64)[..., :3], 0, 1))
+            out["remnants_maps_off"] = int(metrics.sharp_remnants(oe, ue, maps, A, d_f)[0].sum())
+    return out
+
+
+def refined_input(colour, degraded, A: float) -> np.ndarray:
+    """The map that the default (``refine="guided"``) builds its layers from when fed
+    ``degraded``: :func:`mpib_validate.runtime.layers.refine.refine_disparity` with its
+    defaults, as :func:`mpib_validate.runtime.layers.passes.layers_from_passes` calls it."""
+    from mpib_validate.runtime.layers.refine import refine_disparity
+
+    return refine_disparity(np.asarray(colour)[..., :3], degraded, A)
 
 
 def scope_summary(rows, label: str, exact: str, guided: str, node: str) -> dict:
@@ -226,10 +249,13 @@ def scope_summary(rows, label: str, exact: str, guided: str, node: str) -> dict:
     return out
 
 
-def remnant_summary(rows, label: str, methods) -> dict:
+def remnant_summary(rows, label: str, methods, guided: str | None = None,
+                    control: str | None = None) -> dict:
     """Sharp remnants against the truth (:func:`scope_scores`' ``remnants``) summed over
     the scenes per method of ``methods``: the count, the must-blur pixels, their share,
-    the worst scene (most remnants), and a headline."""
+    the worst scene (most remnants), those in the photographs' region where the rows
+    have them, and a headline; it gives the target's verdict there for the ``guided``
+    method (the refined default), beside the exact-depth ``control``."""
     out = {"label": label, "methods": {}}
     for m in methods:
         rs = [r for r in rows if r["method"] == m and "remnants" in r]
@@ -243,6 +269,9 @@ def remnant_summary(rows, label: str, methods) -> dict:
                              "percent": 100.0 * n / max(1, must), "scenes": len(rs),
                              "worst": worst["scene"], "worst_remnants": worst["remnants"],
                              "worst_percent": 100.0 * worst["remnants"] / max(1, worst["must_blur"])}
+        for key in ("remnants_maps", "must_blur_maps", "remnants_maps_off"):
+            if all(key in r for r in rs):
+                out["methods"][m][key] = sum(r[key] for r in rs)
     if out["methods"]:
         out["headline"] = (f"{label}, sharp remnants against the truth where the exact "
                            f"disparity blurs by more than {metrics.REMNANT_BLUR_PX:g} px: " +
@@ -250,8 +279,30 @@ def remnant_summary(rows, label: str, methods) -> dict:
                                      f"{v['must_blur']}; worst {v['worst']} "
                                      f"{v['worst_remnants']}, {v['worst_percent']:.3f} %; "
                                      f"sharp edges {v['edges']})"
-                                     for m, v in out["methods"].items()) + ".")
+                                     for m, v in out["methods"].items()) + "."
+                           + _maps_clause(out["methods"], guided, control))
     return out
+
+
+def _maps_clause(methods: dict, guided, control) -> str:
+    """The headline's clause for the photographs' region (where the degraded map and its
+    refinement both blur), with the target's verdict on the ``guided`` method."""
+    v = methods.get(guided, {})
+    if "remnants_maps" not in v:
+        return ""
+    of = max(1, v["must_blur_maps"])
+    s = (f" Where the degraded map and its refinement both blur (the photographs' region, "
+         f"{v['must_blur_maps']} px), {guided}: {v['remnants_maps']} "
+         f"({100 * v['remnants_maps'] / of:.3f} %) against the truth")
+    if "remnants_maps_off" in v:
+        met = v["remnants_maps_off"] <= REMNANT_TARGET * v["must_blur_maps"]
+        s += (f", {v['remnants_maps_off']} ({100 * v['remnants_maps_off'] / of:.3f} %) "
+              f"against the unrefined output (target {100 * REMNANT_TARGET:g} %: "
+              f"{'met' if met else 'missed'})")
+    ctl = methods.get(control, {})
+    if "remnants_maps" in ctl:
+        s += f"; the exact-depth control {ctl['remnants_maps']} against the truth there"
+    return s + "."
 
 
 def scope_markdown(scope: dict, rem: dict, rows, methods) -> list[str]:
@@ -302,14 +353,21 @@ def scope_markdown(scope: dict, rem: dict, rows, methods) -> list[str]:
                   "those pixels the truth itself holds smooth enough to count (its noise "
                   "hides the others). The exact-depth rows are the control. Sharp edges: "
                   "`metrics.sharp_edges`, steps in the same region that the truth does not "
-                  "have within a pixel.", "",
+                  "have within a pixel. The last three columns count in the photographs' "
+                  "region instead: where the degraded map and its refinement (the default's "
+                  "layers' map) both blur by more than "
+                  f"{metrics.REMNANT_BLUR_PX:g} px, against the truth and against the "
+                  "unrefined output (the photographs' measure).", "",
                   "| method | remnants | must-blur | smooth in the truth | share | worst scene "
-                  "| sharp edges |",
-                  "|---|---|---|---|---|---|---|"]
+                  "| sharp edges | where both maps blur: must-blur | remnants vs truth "
+                  "| remnants vs unrefined |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]
         for m, v in rem["methods"].items():
             lines.append(f"| {m} | {v['remnants']} | {v['must_blur']} | {v['must_blur_smooth']} | "
                          f"{v['percent']:.3f} % | {v['worst']} ({v['worst_remnants']}, "
-                         f"{v['worst_percent']:.3f} %) | {v.get('edges', '-')} |")
+                         f"{v['worst_percent']:.3f} %) | {v.get('edges', '-')} | "
+                         f"{v.get('must_blur_maps', '-')} | {v.get('remnants_maps', '-')} | "
+                         f"{v.get('remnants_maps_off', '-')} |")
         lines.append("")
     return lines
 
@@ -339,7 +397,7 @@ def scene_rows(scene, label, family, seed, ref_spp, only=None) -> list[dict]:
     exact = depth_to_disparity(res.depth)
     excl = metrics.degraded_scope_exclusion(res.all_in_focus, exact, cam.blur_parameter,
                                             cam.focus_disparity)
-    rows = []
+    outputs = {}
     for name, fn in _methods(scene, res, seed).items():
         if only is not None and name not in only:
             continue
@@ -349,11 +407,17 @@ def scene_rows(scene, label, family, seed, ref_spp, only=None) -> list[dict]:
         if isinstance(out, tuple):
             out = out[0]
             seconds = math.nan
-        rows.append({"scene": label, "family": family, "method": name, "cpu_seconds": seconds,
-                     **score(res.bokeh, out, mask, with_flip=False),
-                     **scope_scores(res.bokeh, out, mask, excl, exact, cam.blur_parameter,
-                                    cam.focus_disparity)})
-    return rows
+        outputs[name] = (out, seconds)
+    # the photographs' region: where the degraded map and its refinement both blur
+    degraded = degraded_input(exact, seed)
+    maps = (degraded, refined_input(res.all_in_focus, degraded, cam.blur_parameter))
+    unrefined = outputs.get(UNREFINED, (None,))[0]
+    return [{"scene": label, "family": family, "method": name, "cpu_seconds": seconds,
+             **score(res.bokeh, out, mask, with_flip=False),
+             **scope_scores(res.bokeh, out, mask, excl, exact, cam.blur_parameter,
+                            cam.focus_disparity, maps,
+                            unrefined if "degraded" in name and name != UNREFINED else None)}
+            for name, (out, seconds) in outputs.items()]
 
 
 def _scene_task(item) -> list[dict]:
@@ -556,6 +620,9 @@ KEYS = ("cpu_seconds", "psnr", "psnr_ob", "ssim", "ssim_ob", "psnr_ob_scoped", "
 #: The re-scoped targets' methods on the cards: exact depth, the default for a predicted
 #: map (guided), the Defocus node fed the same map.
 SCOPE_METHODS = ("default exact (bound)", "default degraded + guided", "defocus-node degraded")
+#: The default on the degraded map with the refinement off: the photographs' remnant
+#: measure compares the refined outputs with it.
+UNREFINED = "default degraded"
 #: The rows whose sharp remnants the card table gives (exact depth: the control).
 REMNANT_METHODS = ("default exact (bound)", "default degraded", "default degraded + guided",
                    "default degraded + guided-thin", "defocus-node degraded",
@@ -603,7 +670,8 @@ def _summarise(result):
     for family in ("constant", "varying"):
         frows = [r for r in result["rows"] if r["family"] == family]
         sc = scope_summary(frows, f"{family} cards", *SCOPE_METHODS[:3])
-        rm = remnant_summary(frows, f"{family} cards", REMNANT_METHODS)
+        rm = remnant_summary(frows, f"{family} cards", REMNANT_METHODS,
+                             SCOPE_METHODS[1], SCOPE_METHODS[0])
         if sc:
             scope[family] = sc
             heads.append(sc["headline"])
