@@ -66,6 +66,18 @@ _POSITIVE = _number(float, 0, strict=True)
 _NON_NEGATIVE = _number(float, 0)
 
 
+def _OVERSHOOT(text: str) -> int:
+    """An argparse type: ``--map-overshoot``, an integer from 0 to
+    :data:`mpib_validate.runtime.io.photo.MAX_OVERSHOOT_PX` (pixels of the photograph)."""
+    from mpib_validate.runtime.io.photo import MAX_OVERSHOOT_PX
+
+    v = _COUNT(text)
+    if v > MAX_OVERSHOOT_PX:
+        raise argparse.ArgumentTypeError(f"must be an integer from 0 to {MAX_OVERSHOOT_PX} "
+                                         f"(pixels of the photograph), got {text!r}")
+    return v
+
+
 def _FRACTION(text: str) -> float:
     """An argparse type: a finite number or a fraction ``a/b`` of two finite numbers
     (``207/255``, the official demo's syntax), ``b != 0``."""
@@ -528,7 +540,7 @@ def _plan_and_refocus(args, request, notices=()):
 
 
 _PHOTO_ONLY = ("disparity", "K", "disp_focus", "gamma", "encoding", "exr", "official_focus_range",
-               "refine")
+               "refine", "map_overshoot")
 
 
 def _photo_input(args) -> bool:
@@ -575,7 +587,9 @@ def _refocus_photo(args) -> int:
 
     from mpib_validate.runtime.camera import OFFICIAL_BINS, from_paper, widen_focus
     from mpib_validate.runtime.io.atomic import check_outputs
-    from mpib_validate.runtime.io.photo import Encoding, image_format, output_bits, read_disparity, read_photo, upsample_disparity, write_photo
+    from mpib_validate.runtime.io.photo import (Encoding, image_format, output_bits,
+                                                read_disparity, read_photo, shrink_overshoot,
+                                                upsample_disparity, write_photo)
     from mpib_validate.runtime.layers.passes import depth_to_disparity
     from mpib_validate.runtime.refocus import _depth_channel, focus_from_pixel, passes_from_photo, write_result
     from mpib_validate.runtime.request import RefocusRequest
@@ -633,7 +647,15 @@ def _refocus_photo(args) -> int:
                            f"onto the photograph's)")
             D = upsample_disparity(D, (H, W))
             dsrc = f"{dsrc}, upsampled from {dmap.values.shape[1]}x{dmap.values.shape[0]}"
+        if args.map_overshoot:
+            D = shrink_overshoot(D, args.map_overshoot)
+            dsrc = f"{dsrc}, near side shrunk by {args.map_overshoot} px"
+            notices.append(f"disparity map '{args.disparity}': near side shrunk by "
+                           f"{args.map_overshoot} px (--map-overshoot)")
     else:
+        if args.map_overshoot is not None:
+            raise CliError("--map-overshoot is for a predicted map (--disparity FILE); a depth "
+                           "EXR is taken as exact")
         if args.K is not None:
             raise CliError("--K is per unit of a [0, 1] normalised disparity: give "
                            "--disparity, or --blur-parameter with --depth")
@@ -1020,6 +1042,11 @@ def build_parser() -> argparse.ArgumentParser:
                             "the split (layers/refine.py): guided (the default with "
                             "--disparity), guided-thin (also thin structures; about 1.4 "
                             "times the cost), off (the default with --depth)")
+    photo.add_argument("--map-overshoot", type=_OVERSHOOT, metavar="PX",
+                       help="the map's near side overshoots the outlines by PX photograph "
+                            "pixels (a halo of sharp background around an in-focus object): "
+                            "shrink it first, a grey erosion over a (2 PX + 1)^2 square "
+                            "(default 0; at most 64)")
     photo.add_argument("--official-focus-range", action="store_true",
                        help="as the official renderer's demo (increase_focus_range): subtract "
                             "half a 1/32 bin from every defocus, r = K max(|d - d_f| - 1/64, 0)")

@@ -325,6 +325,48 @@ def test_a_network_resolution_map_is_upsampled_with_a_notice(tmp_path):
                           np.asarray(Image.open(tmp_path / "b.png")))
 
 
+def test_map_overshoot_shrinks_a_fattened_near_side_first(tmp_path):
+    """A map whose near rectangle overshoots the object by 4 px keeps a 4 px strip of
+    background in focus, sharp where the background blurs by 13 px; ``--map-overshoot
+    4`` erodes the map first, which gives back the object's own rectangle (a rectangle
+    dilated by a square and eroded by the same square is itself): the same image to
+    the bit as the exact map, with one notice line. Bad values and a depth EXR are
+    refused in one line."""
+    photo_a = _texture(9)
+    photo = _save(tmp_path / "photo.png", photo_a)
+    exact = _save(tmp_path / "exact.png", _disparity_u8())
+    fat = np.full((H, W), 40, np.uint8)
+    fat[12:52, 26:74] = 210
+    fattened = _save(tmp_path / "fat.png", fat)
+    common = ["--K", 20, "--disp-focus", "210/255", "--refine", "off", "-q"]
+    outs = {}
+    for name, disp, extra in (("exact", exact, []), ("fat", fattened, []),
+                              ("shrunk", fattened, ["--map-overshoot", 4])):
+        outs[name] = tmp_path / f"out-{name}.png"
+        rc, _, err = run("refocus", photo, "--disparity", disp, "-o", outs[name], *common,
+                         *extra)
+        assert rc == 0, err
+        notice = [ln for ln in err.splitlines() if "--map-overshoot" in ln]
+        assert len(notice) == (1 if extra else 0), err
+    img = {k: np.asarray(Image.open(v)) for k, v in outs.items()}
+    # background inside the overshoot, off its ends and its outer row (an edge pixel)
+    strip = (slice(13, 16), slice(34, 66))
+    assert np.array_equal(img["fat"][strip], photo_a[strip])  # the halo: kept sharp
+    assert img["exact"][strip].astype(float).std() < photo_a[strip].astype(float).std() / 3
+    assert np.array_equal(img["shrunk"], img["exact"])
+    for bad in ("-1", "65", "1.5", "x"):
+        line = one_line_error(*run("refocus", photo, "--disparity", fattened, "-o",
+                                   tmp_path / "bad.png", *common, "--map-overshoot", bad)[::2])
+        assert "--map-overshoot" in line and "bad.png" not in {p.name for p in tmp_path.iterdir()}
+    from mpib_validate.runtime.io.exr import write_exr
+
+    write_exr(tmp_path / "z.exr", {"Z": np.full((H, W), 2.0, np.float32)})
+    line = one_line_error(*run("refocus", photo, "--depth", tmp_path / "z.exr",
+                               "--blur-parameter", 5, "--focus-depth", 2, "-o",
+                               tmp_path / "bad.png", "-q", "--map-overshoot", 2)[::2])
+    assert "--map-overshoot" in line and "--disparity" in line
+
+
 @pytest.mark.parametrize("bits", [8, 16])
 def test_in_focus_constant_disparity_png_round_trips_exactly(tmp_path, bits):
     """One plane in focus: radius 0, the identity kernel; the float path adds ~1e-12
@@ -631,7 +673,8 @@ def _write_map(tmp, kind, rng, h, w):
        extra=st.lists(st.sampled_from([["--gamma", "2.2"], ["--encoding", "linear"],
                                        ["--official-focus-range"], ["--focus-pixel", "3,4"],
                                        ["--blur-parameter", "5"], ["--fstop", "2"],
-                                       ["--focus-disparity", "0.3"], ["--exr", "x.exr"]]),
+                                       ["--focus-disparity", "0.3"], ["--exr", "x.exr"],
+                                       ["--map-overshoot", "2"], ["--map-overshoot", "65"]]),
                       max_size=1),
        seed=st.integers(0, 1000))
 def test_fuzz_photo_refocus_succeeds_or_refuses_in_one_line(tmp_path_factory, kind, photo, out,
@@ -677,7 +720,8 @@ def test_help_puts_the_papers_parameters_beside_the_physical_ones():
     rc, out, _ = run("refocus", "--help")
     assert rc == 0
     for option in ("--disparity", "--K", "--disp-focus", "--gamma", "--encoding", "--exr",
-                   "--official-focus-range", "--fstop", "--focal-mm", "--blur-parameter"):
+                   "--official-focus-range", "--map-overshoot", "--fstop", "--focal-mm",
+                   "--blur-parameter"):
         assert option in out, option
     table = out[out.index("parameters, paper and physical"):]
     assert "--K K" in table and "--fstop N" in table and "A = K = R f_px" in table

@@ -503,6 +503,36 @@ def read_disparity(path, shape, normalised: bool, any_size: bool = False) -> Sca
     return m
 
 
+#: The largest overshoot (photograph pixels) that :func:`shrink_overshoot` takes: a
+#: network's outline overshoots by a pixel or two of its own 384 to 518 px map, some 16 px
+#: of a 4000 px photograph; four times that is no overshoot but a wrong map.
+MAX_OVERSHOOT_PX = 64
+
+
+def shrink_overshoot(disparity: np.ndarray, px: int) -> np.ndarray:
+    """A predicted disparity map whose near side overshoots the objects' outlines by
+    ``px`` pixels, brought back: the grey erosion ``d'(x) = min_{|u|, |v| <= px}
+    d(x + (u, v))`` (the minimum over a ``(2 px + 1)^2`` square, the border repeated),
+    which moves every edge between a nearer (larger ``d``) and a farther surface by
+    ``px`` pixels into the nearer one. Units as ``disparity``.
+
+    A network's map that is fattened there keeps a strip of background on the near side
+    of an in-focus object; the refinement
+    (:func:`mpib_validate.runtime.layers.refine.refine_disparity`) moves an edge by 3 px
+    at most, so the strip stays in focus, sharp inside the blur around it. On a map that
+    does not overshoot, the erosion cuts the objects' outlines instead (docs/photos.md
+    gives both, measured)."""
+    from scipy import ndimage
+
+    px = int(px)
+    if not 0 <= px <= MAX_OVERSHOOT_PX:
+        raise ValueError(f"the overshoot must be 0 to {MAX_OVERSHOOT_PX} px, got {px}")
+    d = np.asarray(disparity, np.float64)
+    if px == 0:
+        return d.copy()
+    return ndimage.grey_erosion(d, size=(2 * px + 1, 2 * px + 1), mode="nearest")
+
+
 def upsample_disparity(disparity: np.ndarray, shape) -> np.ndarray:
     """A low-resolution disparity map ``(h, w)`` (a network's, 384 to 518 px) brought to
     the photograph's ``shape = (H, W)`` by bilinear interpolation, pixel centres aligned
