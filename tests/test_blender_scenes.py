@@ -229,9 +229,16 @@ def test_degraded_part_scores_the_rescoped_targets_and_remnants(suite):
             continue
         assert math.isfinite(r["psnr_ob_scoped"]) and 0 < r["scoped_fraction"] <= 1
         assert 0 <= r["remnants"] <= r["must_blur_smooth"] <= r["must_blur"]
+        # the photographs' region: where the degraded map and its refinement both blur;
+        # against the unrefined output for the methods fed the same degraded map
+        assert 0 <= r["remnants_maps"] <= r["must_blur_maps"]
+        assert ("remnants_maps_off" in r) == (r["method"] in (
+            BB.DEGRADED_GUIDED, BB.DEGRADED_THIN, BB.NODE_DEGRADED))
     result = {"rows": rows, "emitters": [], "scenes": []}
     summary = BB._summarise(result)
     assert "within 3 dB: " in summary["scope"]["headline"]
+    assert "against the unrefined output (target 0.02 % over the suite" in (
+        summary["remnants"]["headline"])
     assert set(summary["remnants"]["methods"]) == {m for m in BB.REMNANT_METHODS if m in images}
 
 
