@@ -85,6 +85,9 @@ DEGRADED = "default, degraded depth"
 DEGRADED_GUIDED = "default, degraded depth + guided"
 DEGRADED_THIN = "default, degraded depth + guided-thin"
 NODE_DEGRADED = "Defocus node, degraded depth"
+#: The rows compared with :data:`DEGRADED` (refinement off) in the photographs' remnant
+#: region: those fed the same degraded depth.
+VS_UNREFINED = (DEGRADED_GUIDED, DEGRADED_THIN, NODE_DEGRADED)
 
 
 def boundary_mask(depth: np.ndarray, A: float, d_f: float, window: int = 9) -> np.ndarray:
@@ -287,8 +290,7 @@ def scene_rows(sc, images: dict) -> list[dict]:
         rows.append({**base, "method": method, "seconds": float(seconds),
                      **score(sc.truth, img, mask, with_flip=False),
                      **scope_scores(sc.truth, img, mask, excl, D, m["A"], m["d_f"], maps,
-                                    unrefined if "degraded" in method and method != DEGRADED
-                                    else None)})
+                                    unrefined if method in VS_UNREFINED else None)})
     a, b = (np.clip(s, 0, 1) for s in sc.seeds)
     gain = 20.0 * math.log10(2.0)
     rows.append({**base, "method": "truth noise floor", "seconds": 0.0,

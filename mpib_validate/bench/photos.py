@@ -422,7 +422,7 @@ def scene_rows(scene, label, family, seed, ref_spp, only=None) -> list[dict]:
              **score(res.bokeh, out, mask, with_flip=False),
              **scope_scores(res.bokeh, out, mask, excl, exact, cam.blur_parameter,
                             cam.focus_disparity, maps,
-                            unrefined if "degraded" in name and name != UNREFINED else None)}
+                            unrefined if name in VS_UNREFINED else None)}
             for name, (out, seconds) in outputs.items()]
 
 
@@ -629,6 +629,10 @@ SCOPE_METHODS = ("default exact (bound)", "default degraded + guided", "defocus-
 #: The default on the degraded map with the refinement off: the photographs' remnant
 #: measure compares the refined outputs with it.
 UNREFINED = "default degraded"
+#: The rows compared with :data:`UNREFINED` in the photographs' region: those fed the
+#: same degraded map through the same (default) preset, or Blender's node.
+VS_UNREFINED = ("default degraded + guided", "default degraded + guided-thin",
+                "defocus-node degraded")
 #: The rows whose sharp remnants the card table gives (exact depth: the control).
 REMNANT_METHODS = ("default exact (bound)", "default degraded", "default degraded + guided",
                    "default degraded + guided-thin", "defocus-node degraded",

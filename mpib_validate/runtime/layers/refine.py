@@ -359,7 +359,7 @@ def _outside_sides(D, band, hi, lo, reach):
     hi_side, lo_side = hi.copy(), lo.copy()
 
     def block(item):
-        out, sub, inner = item
+        _, sub, inner = item
         return _outside_sides_box(D[sub], band[sub], hi[sub], lo[sub], reach, inner)
 
     blocks = list(_blocks(band, 2 * int(np.ceil(reach))))
