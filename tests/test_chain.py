@@ -177,6 +177,29 @@ def test_nothing_farther_shows_through_a_surface_crossing_planes():
     assert np.abs(blue[deep]).max() < 1e-5, np.abs(blue[deep]).max()
 
 
+def _surface_beside_a_ramp(ramp_from: float):
+    """``(A, d_f, near, D, mpi)``, 160x200, A = 32, focus 0.92: a grey surface (``near``)
+    at d = 0.70 with a noisy disparity (1 % rms, smooth over 2 px) before a blue
+    background at 0.2, and a red ramp at the picture's left edge (12 px wide) whose
+    disparity goes from ``ramp_from`` to 0.75 down the picture; ``mpi`` built by the
+    default preset's passes."""
+    from scipy import ndimage
+
+    H, W = 160, 200
+    A, d_f = 32.0, 0.92
+    near = np.zeros((H, W), bool)
+    near[16:144, 56:184] = True
+    noise = ndimage.gaussian_filter(np.random.default_rng(0).standard_normal((H, W)), 2.0)
+    D = np.where(near, 0.70 + 0.01 * noise / noise.std(), 0.2)
+    ramp = np.zeros((H, W), bool)
+    ramp[:, :12] = True
+    D = np.where(ramp, np.linspace(ramp_from, 0.75, H)[:, None], D)
+    colour = np.where(near[..., None], np.float32([0.5, 0.5, 0.5]), np.float32([0.1, 0.2, 0.9]))
+    colour = np.where(ramp[..., None], np.float32([0.9, 0.2, 0.1]), colour)
+    mpi, _ = layers_from_passes(colour, D, A, DEFAULT.passes)
+    return A, d_f, near, D, mpi
+
+
 def test_a_fill_in_the_same_chain_shows_only_through_the_shortfall():
     """The surface of the test above, now in one chain with its background: a ramp at
     the picture's edge holds every disparity in between (as a photograph's continuous
@@ -192,18 +215,7 @@ def test_a_fill_in_the_same_chain_shows_only_through_the_shortfall():
     distance is taken one cell short), none (0.076 before that rule)."""
     from scipy import ndimage
 
-    H, W = 160, 200
-    A, d_f = 32.0, 0.92
-    near = np.zeros((H, W), bool)
-    near[16:144, 56:184] = True
-    noise = ndimage.gaussian_filter(np.random.default_rng(0).standard_normal((H, W)), 2.0)
-    D = np.where(near, 0.70 + 0.01 * noise / noise.std(), 0.2)
-    ramp = np.zeros((H, W), bool)
-    ramp[:, :12] = True
-    D = np.where(ramp, np.linspace(0.2, 0.75, H)[:, None], D)
-    colour = np.where(near[..., None], np.float32([0.5, 0.5, 0.5]), np.float32([0.1, 0.2, 0.9]))
-    colour = np.where(ramp[..., None], np.float32([0.9, 0.2, 0.1]), colour)
-    mpi, _ = layers_from_passes(colour, D, A, DEFAULT.passes)
+    A, d_f, near, D, mpi = _surface_beside_a_ramp(0.2)
     r_near = A * (d_f - D[near].min())
     inside = ndimage.binary_erosion(near, iterations=int(np.ceil(r_near)) + 2)
     blue = (C.composite(mpi, A, d_f, CHAIN)[..., 2] - 0.5) / (0.9 - 0.5)
@@ -211,4 +223,28 @@ def test_a_fill_in_the_same_chain_shows_only_through_the_shortfall():
     R = max(C._reach(A * (l.disparity - d_f), CHAIN) for l in mpi.layers if l.disparity > 0.5)
     deep = ndimage.binary_erosion(near, iterations=int(np.ceil(R + 1)) + 2 * C._ONE_CELL)
     assert deep.sum() > 1000, deep.sum()
+    assert np.abs(blue[deep]).max() < 1e-5, np.abs(blue[deep]).max()
+
+
+def test_a_surface_hides_what_lies_behind_beyond_its_own_blur_radius():
+    """The surface of the tests above (grey, d = 0.70 with a noisy disparity, radius
+    about 7 px) before a blue background at 0.2, in a chain that also holds a red ramp
+    from 0.5 to 0.75 at the picture's left edge (radius up to 13.4 px there): the
+    chain's largest blur reach is the ramp's, twice the surface's. A thin lens sees
+    past the surface only within the surface's own blur radius of its silhouette; there
+    the farther composite (the blue) fills the chain's shortfall. Deeper, blue can show
+    only through the shortfall of a surface crossing planes (up to about 0.10 of the
+    colour, see above), which is no view of what lies behind. Required: no blue deeper
+    than the surface's own reach plus one pixel, up to float32 rounding (a ramp from the
+    chain's largest reach instead let blue through between 8 and 15 px inside)."""
+    from scipy import ndimage
+
+    A, d_f, near, D, mpi = _surface_beside_a_ramp(0.5)
+    own = max(C._reach(A * (l.disparity - d_f), CHAIN) for l in mpi.layers
+              if l.disparity > D[near].min() - 0.04)
+    largest = max(C._reach(A * (l.disparity - d_f), CHAIN) for l in mpi.layers
+                  if l.disparity > 0.45)
+    assert largest > own + 4, (largest, own)
+    deep = ndimage.binary_erosion(near, iterations=int(np.ceil(own + 1)))
+    blue = (C.composite(mpi, A, d_f, CHAIN)[..., 2] - 0.5) / (0.9 - 0.5)
     assert np.abs(blue[deep]).max() < 1e-5, np.abs(blue[deep]).max()

@@ -523,10 +523,10 @@ def refocus_estimate(disparity: np.ndarray, blur_parameter: float, focus_dispari
     acc = 32 * px if p.subapertures == 1 else 64 * px
     if p.composite.chain_px is not None:
         # composite._Chain: the chain's own sum and its last slab (16 B/px each), two
-        # slab footprints and the chain's summed footprint (float32 alphas, 4 B/px
-        # each) and the weights of a push (two float32 channels over the slab's box,
-        # and as much again while they are interpolated from cells)
-        acc += (16 + 16 + 12 + 16) * px
+        # slab footprints, the chain's summed footprint and its reach-weighted sum
+        # (float32, 4 B/px each) and the weights of a push (two float32 channels over
+        # the slab's box, and as much again while they are interpolated from cells)
+        acc += (16 + 16 + 16 + 16) * px
     edge = _edge_fraction(D, p.passes.jump_px / A)
     if edge > 0:  # jumps: the hidden background is filled
         edges_phase = (BUILD_BYTES_PER_PX + BUILD_BYTES_PER_EDGE_PX * edge) * px

@@ -907,6 +907,7 @@ class _Chain:
         self.canvas = canvas
         self.members = set()  # the slabs of the current chain
         self.cover = None  # the sum of the chain's slabs' footprint alphas (canvas)
+        self.cover_reach = None  # the same sum, each alpha times its slab's blur reach
         self.last_sum = None  # the last slab as laid (frame-sized), on last_tiles
         self.last_tiles = None
         self.last_foot = None  # the last slab's _footprint
@@ -963,7 +964,7 @@ class _Chain:
         cols = np.flatnonzero(tiles.any(axis=0))
         y0, y1 = rows[0] * _TILE, min((rows[-1] + 1) * _TILE, H)
         x0, x1 = cols[0] * _TILE, min((cols[-1] + 1) * _TILE, W)
-        reach = max([r for s in (slab, self.last) for _, r in self.by_slab.get(s, [])] + [0])
+        reach = max(self._slab_reach(slab), self._slab_reach(self.last))
         R = int(math.ceil(reach))
         grow = int(math.ceil((R + 1) / f)) + 2  # cells: the filters' reach, and one
         cy0, cy1 = max(0, y0 // f - grow), min(foot[1].shape[0], -(-y1 // f) + grow)
@@ -1002,9 +1003,12 @@ class _Chain:
         foot = self._footprint(slab)
         if fresh:
             self.cover = np.zeros_like(foot[0])
+            self.cover_reach = np.zeros_like(foot[0])
         if foot[2] is not None:
             y0, y1, x0, x1 = foot[2]
-            self.cover[y0:y1, x0:x1] += foot[0][y0:y1, x0:x1]
+            a = foot[0][y0:y1, x0:x1]
+            self.cover[y0:y1, x0:x1] += a
+            self.cover_reach[y0:y1, x0:x1] += np.float32(self._slab_reach(slab)) * a
         if not fresh:
             cells, origin = self._weights(slab, foot, group_tiles)
         if self.last_tiles is not None:  # the last slab is zero where this one is not
@@ -1043,16 +1047,27 @@ class _Chain:
         _over_tiles(acc, self.sum, self.tiles, m, self.frame)
         for y0, y1, x0, x1 in _runs(self.last_tiles, _TILE, self.frame):
             self.last_sum[y0 - m:y1 - m, x0 - m:x1 - m] = 0.0
-        self.last_tiles = self.last_foot = self.cover = None
+        self.last_tiles = self.last_foot = self.cover = self.cover_reach = None
         self.tiles = None
         self.members = set()
+
+    def _slab_reach(self, slab) -> float:
+        """The largest blur reach (px) of the slab's layers (0 without layers)."""
+        return max([r for _, r in self.by_slab.get(slab, [])] + [0])
 
     def _inside(self):
         """``(w, (y0, x0))``: over the box of the chain's tiles (canvas pixels from
         ``(y0, x0)``), how far each pixel lies inside the chain's opaque footprint:
-        0 within its largest blur reach ``R`` (``reach`` of its layers) of a pixel that
-        the chain does not cover opaquely, rising linearly to 1 at ``R + 1``; None
-        when no pixel is that deep.
+        0 within the surface's own blur reach ``R`` at that pixel of a pixel that the
+        chain does not cover opaquely, rising linearly to 1 at ``R + 1``; None when no
+        pixel is that deep. ``R`` is the mean of the reaches of the chain's slabs at the
+        pixel, weighted by their footprint alphas there (a pixel's shares between two
+        planes): the radius of the cone that a thin lens sees the surface through from
+        that pixel. A chain holds every slab of a continuous map between two gaps, so
+        its largest reach can be that of another object, twice the surface's; a ramp
+        at that reach would let the farther composite show through the surface's
+        shortfall beyond the surface's own reach (a faint line of a light wall inside a
+        blurred black helmet, 17 display levels; ``tests/test_chain.py``).
 
         There a thin lens sees only the chain's surface, and a coverage below 1 is not
         a hole but the shortfall of a surface cut into planes of different radii (the
@@ -1068,10 +1083,10 @@ class _Chain:
         cols = np.flatnonzero(self.tiles.any(axis=0))
         y0, y1 = rows[0] * _TILE, min((rows[-1] + 1) * _TILE, self.canvas[0])
         x0, x1 = cols[0] * _TILE, min((cols[-1] + 1) * _TILE, self.canvas[1])
-        R = max(r for s in self.members for _, r in self.by_slab.get(s, []))
-        if 2 * R >= min(y1 - y0, x1 - x0):
+        if 2 * min(self._slab_reach(s) for s in self.members) >= min(y1 - y0, x1 - x0):
             return None
-        solid = self.cover[y0:y1, x0:x1] >= np.float32(1.0 - 1e-3)
+        cover = self.cover[y0:y1, x0:x1]
+        solid = cover >= np.float32(1.0 - 1e-3)
         # the compositor continues content at the canvas edge outward: so does the mask
         pad = [(0 if y0 == 0 else 1, 0 if y1 == self.canvas[0] else 1),
                (0 if x0 == 0 else 1, 0 if x1 == self.canvas[1] else 1)]
@@ -1080,15 +1095,17 @@ class _Chain:
             return None
         dist = ndimage.distance_transform_edt(padded)[pad[0][0]:pad[0][0] + solid.shape[0],
                                                       pad[1][0]:pad[1][0] + solid.shape[1]]
-        w = _depth_ramp(dist, R).astype(np.float32)
+        reach = self.cover_reach[y0:y1, x0:x1] / np.maximum(cover, np.float32(1e-6))
+        w = _depth_ramp(dist, reach).astype(np.float32)
         return (w, (y0, x0)) if w.any() else None
 
 
-def _depth_ramp(dist: np.ndarray, R: float) -> np.ndarray:
+def _depth_ramp(dist: np.ndarray, R) -> np.ndarray:
     """How far inside an opaque footprint a pixel lies, from its distance ``dist`` (px)
     to the nearest pixel the footprint does not cover: ``clip(dist - R, 0, 1)``, 0
-    within the blur reach ``R`` (px) of the footprint's edge, where a lens still sees
-    past it, 1 from ``R + 1`` on (:meth:`_Chain._weights`, :meth:`_Chain._inside`).
+    within the blur reach ``R`` (px; a number, or one per pixel) of the footprint's
+    edge, where a lens still sees past it, 1 from ``R + 1`` on
+    (:meth:`_Chain._weights`, :meth:`_Chain._inside`).
 
     Deeper than ``R`` a thin lens sees nothing behind the footprint, and what lies
     behind would show only through the few percent by which a surface cut into planes

@@ -20,7 +20,9 @@ edges:
    squares with ridge ``eps``, the coefficients averaged over the windows that hold each
    pixel. Where the colours of the two sides differ, ``q`` steps at the colour edge
    (guided feathering); where they do not, it is the box-blurred mask, whose
-   mid-crossing is the predicted one;
+   mid-crossing is the predicted one. A second pass filters the sides ``q >= 1/2`` that
+   the first gave (:data:`GUIDE_PASSES`): one pass undoes only part of an offset of
+   several pixels;
 4. each band pixel within ``flip_px`` of the predicted edge takes the side ``q >= 1/2``
    (deeper inside, its predicted side: a texture whose colours straddle the other
    side's would flip under the filter's linear colour model), then that side's value:
@@ -99,13 +101,19 @@ def guided_filter(guide: np.ndarray, p: np.ndarray, r: int, eps: float) -> np.nd
 
     Computed in float32 (the guide is about [0, 1] and ``eps`` 1e-4 or more, so the
     window variances keep 3 significant digits or more; the refinement only compares
-    ``q`` with 1/2).
+    ``q`` with 1/2). :func:`guide_statistics` and :func:`guided_apply` are its two
+    halves, for filtering several inputs with one guide.
     """
+    stats = guide_statistics(guide, r, eps)
+    return guided_apply(stats, p, r)
+
+
+def guide_statistics(guide: np.ndarray, r: int, eps: float) -> tuple:
+    """The part of :func:`guided_filter` that depends on the guide only: the guide
+    ``I`` (float32), its window means ``mean_k(I)`` and ``(Sigma_k + eps U)^-1`` as the
+    adjugate's six distinct entries and the determinant."""
     I = np.asarray(guide, np.float32)
-    p = np.asarray(p, np.float32)
     mI = box_mean(I, r)
-    mp = box_mean(p, r)
-    cIp = box_mean(I * p[..., None], r) - mI * mp[..., None]
     # covariance of the guide: 6 distinct entries of the symmetric 3x3 matrix
     idx = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
     prods = np.stack([I[..., i] * I[..., j] for i, j in idx], axis=-1)
@@ -117,6 +125,16 @@ def guided_filter(guide: np.ndarray, p: np.ndarray, r: int, eps: float) -> np.nd
     c00, c01, c02 = s11 * s22 - s12 * s12, s02 * s12 - s01 * s22, s01 * s12 - s02 * s11
     c11, c12, c22 = s00 * s22 - s02 * s02, s01 * s02 - s00 * s12, s00 * s11 - s01 * s01
     det = s00 * c00 + s01 * c01 + s02 * c02  # > 0: Sigma is positive semi-definite
+    return I, mI, (c00, c01, c02, c11, c12, c22), det
+
+
+def guided_apply(stats: tuple, p: np.ndarray, r: int) -> np.ndarray:
+    """:func:`guided_filter` of ``p`` with the guide's :func:`guide_statistics`
+    (same ``r``)."""
+    I, mI, (c00, c01, c02, c11, c12, c22), det = stats
+    p = np.asarray(p, np.float32)
+    mp = box_mean(p, r)
+    cIp = box_mean(I * p[..., None], r) - mI * mp[..., None]
     v0, v1, v2 = cIp[..., 0], cIp[..., 1], cIp[..., 2]
     a = np.stack([c00 * v0 + c01 * v1 + c02 * v2, c01 * v0 + c11 * v1 + c12 * v2,
                   c02 * v0 + c12 * v1 + c22 * v2], axis=-1) / det[..., None]
@@ -185,14 +203,19 @@ def refine_disparity(colour: np.ndarray, disparity: np.ndarray, blur_parameter: 
     f = 2 * flip_px + 1
     zone = band & np.not_equal(*_max_min(m, f))
     q = np.zeros(D.shape)
-    margin = 2 * guide_radius  # q at a pixel depends on the guide within 2 r of it
+    # q at a pixel depends on the guide and the filtered mask within 2 r of it, so on
+    # the guide within 2 r of it per pass
+    margin = 2 * guide_radius * GUIDE_PASSES
 
     def guided_box(box):
         y0, y1, x0, x1 = box
         Y0, Y1 = max(0, y0 - margin), min(D.shape[0], y1 + margin)
         X0, X1 = max(0, x0 - margin), min(D.shape[1], x1 + margin)
-        qb = guided_filter(colour_guide(colour[Y0:Y1, X0:X1]), m[Y0:Y1, X0:X1],
-                           guide_radius, eps)
+        stats = guide_statistics(colour_guide(colour[Y0:Y1, X0:X1]), guide_radius, eps)
+        mb, zb = m[Y0:Y1, X0:X1], zone[Y0:Y1, X0:X1]
+        qb = guided_apply(stats, mb, guide_radius)
+        for _ in range(GUIDE_PASSES - 1):
+            qb = guided_apply(stats, np.where(zb, qb >= 0.5, mb), guide_radius)
         return qb[y0 - Y0:y1 - Y0, x0 - X0:x1 - X0]
 
     boxes = list(_boxes(zone, TILE))
@@ -223,6 +246,25 @@ def refine_disparity(colour: np.ndarray, disparity: np.ndarray, blur_parameter: 
         grown = ndimage.binary_dilation(moved, np.ones((3, 3), bool))
         out = _no_new_slivers(out, D, grown, blur_parameter, jump_px, moved)
     return D + weight * (out - D)
+
+
+#: Passes of the guided filter (:func:`refine_disparity`, step 3): each pass after the
+#: first filters the sides that the last one gave in the flip zone (the predicted side
+#: elsewhere), with the same guide statistics. One pass moves a mask edge that lies
+#: ``s`` px off the colour edge only part of the way, so it leaves part of a larger
+#: offset, as where a blurred and reduced map rounds off a card's corner (q 0.37 to
+#: 0.49 on plainly brown pixels of a brown card before cyan). Measured with the default
+#: preset and `guided` on the degraded maps; one pass -> two (-> three):
+#:
+#: - re-scoped PSNR_ob from exact depth: constant cards -4.73 -> -3.35 (-> -3.5) dB
+#:   (constant-1 -8.0 -> -2.3, constant-5 -7.8 -> -3.5), varying -3.23 -> -3.14
+#:   (-> -3.2), Blender scenes -0.53 -> -0.43;
+#: - photographs: PSNR 40.29 -> 40.27 dB, remnants against the truth 590 -> 593, against
+#:   the unrefined output where both maps blur 40 -> 42 with every row within 0.02 %
+#:   (astronaut near 0.022 % -> 0.017 %);
+#: - cost on the busy photograph at 2000x1333: about +0.2 s wall (1.58-1.70 ->
+#:   1.74-2.06 s, alternated, load 1.2 to 1.4).
+GUIDE_PASSES = 2
 
 
 #: Side of the square (px) that a pixel moved across the predicted edge by the colour
