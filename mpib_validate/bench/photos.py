@@ -446,7 +446,7 @@ REMNANT_TARGET = 2e-4
 #: Light patches in blurred hair (``remnants.light_patches``): at most this share of the
 #: head's inside visibly (10 display levels) lighter than the unrefined output, which
 #: has no hidden background behind the hair. What the check leaves is within about a
-#: blur radius of the outline, where the refined edge is not the unrefined one (0.22 %).
+#: blur radius of the outline, where the refined edge is not the unrefined one (0.24 %).
 PATCH_TARGET = 0.01
 
 
