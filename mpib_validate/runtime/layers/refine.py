@@ -261,7 +261,7 @@ def refine_disparity(colour: np.ndarray, disparity: np.ndarray, blur_parameter: 
 #:   (-> -3.2), Blender scenes -0.53 -> -0.43;
 #: - photographs: PSNR 40.29 -> 40.27 dB, remnants against the truth 590 -> 593, against
 #:   the unrefined output where both maps blur 40 -> 42 with every row within 0.02 %
-#:   (astronaut near 0.022 % -> 0.017 %);
+#:   (astronaut near 0.022 % -> 0.016 %);
 #: - cost on the busy photograph at 2000x1333: about +0.2 s wall (1.58-1.70 ->
 #:   1.74-2.06 s, alternated, load 1.2 to 1.4).
 GUIDE_PASSES = 2
