@@ -67,6 +67,42 @@ def test_guided_filter_with_a_flat_guide_is_the_box_mean_of_the_box_mean():
     np.testing.assert_allclose(q, box_mean(box_mean(p, 2), 2), atol=1e-6)
 
 
+def test_window_means_and_extremes_are_those_of_the_clipped_windows():
+    """The refinement's box mean and its small-window extremes (written with shifted
+    array operations) against the windows clipped to the array, pixel by pixel, on
+    arrays smaller and larger than the window, and against scipy's filters (the
+    extremes exactly: a minimum or maximum has no rounding)."""
+    from scipy import ndimage
+
+    from mpib_validate.runtime.layers.refine import _closing, _extreme, _opening, box_mean
+
+    rng = np.random.default_rng(4)
+    for shape in [(1, 1), (2, 7), (5, 3), (9, 13), (23, 17)]:
+        for r in (1, 2, 3, 6):
+            x = rng.random(shape)
+            H, W = shape
+            clipped = [[(y0, y1, x0, x1) for x0, x1 in
+                        [(max(0, j - r), min(W, j + r + 1)) for j in range(W)]]
+                       for y0, y1 in [(max(0, i - r), min(H, i + r + 1)) for i in range(H)]]
+            mean = np.array([[x[a:b, c:d].mean() for a, b, c, d in row] for row in clipped])
+            # float64 running sums: a few ulps of values below 1
+            np.testing.assert_allclose(box_mean(x, r), mean, rtol=0, atol=1e-12)
+            rgb = rng.random(shape + (3,)).astype(np.float32)
+            np.testing.assert_allclose(box_mean(rgb, r)[..., 1], box_mean(rgb[..., 1], r),
+                                       rtol=0, atol=0)
+            for fn, extreme in ((np.maximum, np.max), (np.minimum, np.min)):
+                want = np.array([[extreme(x[a:b, c:d]) for a, b, c, d in row]
+                                 for row in clipped])
+                assert np.array_equal(_extreme(x, 2 * r + 1, fn), want)
+                b = x > 0.5
+                assert np.array_equal(_extreme(b, 2 * r + 1, fn),
+                                      (ndimage.maximum_filter if fn is np.maximum
+                                       else ndimage.minimum_filter)(b, 2 * r + 1,
+                                                                    mode="nearest"))
+        assert np.array_equal(_opening(x), ndimage.grey_opening(x, (3, 3), mode="nearest"))
+        assert np.array_equal(_closing(x), ndimage.grey_closing(x, (3, 3), mode="nearest"))
+
+
 def _crossing(D, mid=0.3):
     """First column, per row, where the disparity drops below ``mid`` (the far side)."""
     return np.argmax(D < mid, axis=1)
