@@ -120,16 +120,16 @@ def guided_filter(guide: np.ndarray, p: np.ndarray, r: int, eps: float) -> np.nd
 def guide_statistics(guide: np.ndarray, r: int, eps: float) -> tuple:
     """The part of :func:`guided_filter` that depends on the guide only: the guide
     ``I`` (float32), its window means ``mean_k(I)`` and ``(Sigma_k + eps U)^-1`` as the
-    adjugate's six distinct entries and the determinant."""
-    I = np.asarray(guide, np.float32)
-    mI = box_mean(I, r)
+    adjugate's six distinct entries and the determinant. Each channel is a separate
+    contiguous ``(H, W)`` plane: a box filter of a plane runs about 1.3 times as fast as
+    the same filter of a channel of an ``(H, W, C)`` stack, with the same sums."""
+    I = [np.ascontiguousarray(np.asarray(guide[..., k], np.float32)) for k in range(3)]
+    mI = [box_mean(c, r) for c in I]
     # covariance of the guide: 6 distinct entries of the symmetric 3x3 matrix
     idx = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
-    prods = np.stack([I[..., i] * I[..., j] for i, j in idx], axis=-1)
-    mII = box_mean(prods, r)
     # a = (Sigma + eps U)^-1 cov(I, p), by the adjugate of the symmetric 3x3 matrix
-    s00, s01, s02, s11, s12, s22 = (mII[..., k] - mI[..., i] * mI[..., j]
-                                    for k, (i, j) in enumerate(idx))
+    s00, s01, s02, s11, s12, s22 = (box_mean(I[i] * I[j], r) - mI[i] * mI[j]
+                                    for i, j in idx)
     s00, s11, s22 = s00 + eps, s11 + eps, s22 + eps
     c00, c01, c02 = s11 * s22 - s12 * s12, s02 * s12 - s01 * s22, s01 * s12 - s02 * s11
     c11, c12, c22 = s00 * s22 - s02 * s02, s01 * s02 - s00 * s12, s00 * s11 - s01 * s01
@@ -143,16 +143,13 @@ def guided_apply(stats: tuple, p: np.ndarray, r: int) -> np.ndarray:
     I, mI, (c00, c01, c02, c11, c12, c22), det = stats
     p = np.asarray(p, np.float32)
     mp = box_mean(p, r)
-    cIp = box_mean(I * p[..., None], r) - mI * mp[..., None]
-    v0, v1, v2 = cIp[..., 0], cIp[..., 1], cIp[..., 2]
-    a = np.stack([c00 * v0 + c01 * v1 + c02 * v2, c01 * v0 + c11 * v1 + c12 * v2,
-                  c02 * v0 + c12 * v1 + c22 * v2], axis=-1) / det[..., None]
-    # the channel sums written out: numpy's reduction over a last axis of 3 is several
-    # times slower than the two additions, in the same order
-    b = mp - (a[..., 0] * mI[..., 0] + a[..., 1] * mI[..., 1] + a[..., 2] * mI[..., 2])
-    ma = box_mean(a, r)
-    return (ma[..., 0] * I[..., 0] + ma[..., 1] * I[..., 1] + ma[..., 2] * I[..., 2]
-            + box_mean(b, r))
+    v0, v1, v2 = (box_mean(I[k] * p, r) - mI[k] * mp for k in range(3))
+    a = (c00 * v0 + c01 * v1 + c02 * v2, c01 * v0 + c11 * v1 + c12 * v2,
+         c02 * v0 + c12 * v1 + c22 * v2)
+    a = [ak / det for ak in a]
+    b = mp - (a[0] * mI[0] + a[1] * mI[1] + a[2] * mI[2])
+    ma = [box_mean(ak, r) for ak in a]
+    return ma[0] * I[0] + ma[1] * I[1] + ma[2] * I[2] + box_mean(b, r)
 
 
 def colour_guide(colour: np.ndarray) -> np.ndarray:
@@ -199,15 +196,21 @@ def refine_disparity(colour: np.ndarray, disparity: np.ndarray, blur_parameter: 
     hi, lo, band = _window_sides(D, blur_parameter, radius, jump_px)
     if not band.any():
         return D.copy()
-    band, weight = _edges(D, band, hi, lo, blur_parameter, radius, jump_px)
-    if not band.any():
-        return D.copy()
     # each pixel's predicted side: above or below the mid-level of a window that reaches
     # flip_px (at most radius) beyond the band, so that a flat region next to the band (hi == lo there in
     # the band's own window) keeps its side instead of making a false edge inside an
-    # object, where the colour of a texture would then flip pixels
+    # object, where the colour of a texture would then flip pixels. The window's two
+    # extremes are taken on other threads while the edges are found.
+    from scipy import ndimage
+
     wide = 2 * (radius + min(flip_px, radius)) + 1
-    m = D > 0.5 * np.add(*_max_min(D, wide))
+    (band, weight), w_hi, w_lo = _map_blocks(lambda task: task(), [
+        lambda: _edges(D, band, hi, lo, blur_parameter, radius, jump_px),
+        lambda: ndimage.maximum_filter(D, wide, mode="nearest"),
+        lambda: ndimage.minimum_filter(D, wide, mode="nearest")])
+    if not band.any():
+        return D.copy()
+    m = D > 0.5 * (w_hi + w_lo)
     # the colour may move the side only within flip_px of the predicted edge: deeper
     # inside, a texture whose colours straddle the other side's (red and cyan stripes
     # before a grey wall) would flip under the guided filter's linear colour model
