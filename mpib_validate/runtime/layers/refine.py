@@ -201,13 +201,10 @@ def refine_disparity(colour: np.ndarray, disparity: np.ndarray, blur_parameter: 
     # the band's own window) keeps its side instead of making a false edge inside an
     # object, where the colour of a texture would then flip pixels. The window's two
     # extremes are taken on other threads while the edges are found.
-    from scipy import ndimage
-
     wide = 2 * (radius + min(flip_px, radius)) + 1
-    (band, weight), w_hi, w_lo = _map_blocks(lambda task: task(), [
-        lambda: _edges(D, band, hi, lo, blur_parameter, radius, jump_px),
-        lambda: ndimage.maximum_filter(D, wide, mode="nearest"),
-        lambda: ndimage.minimum_filter(D, wide, mode="nearest")])
+    (band, weight), w_hi, w_lo = _run_tasks(
+        [lambda: _edges(D, band, hi, lo, blur_parameter, radius, jump_px)]
+        + _max_min_tasks(D, wide))
     if not band.any():
         return D.copy()
     m = D > 0.5 * (w_hi + w_lo)
@@ -490,10 +487,21 @@ def _closing(x: np.ndarray) -> np.ndarray:
 def _max_min(x: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
     """The maximum and the minimum of ``x`` over each pixel's ``size x size`` window
     (the border repeated), the two filters on two threads where there are cores."""
+    return tuple(_run_tasks(_max_min_tasks(x, size)))
+
+
+def _max_min_tasks(x: np.ndarray, size: int) -> list:
+    """:func:`_max_min` as two calls, for :func:`_run_tasks` with other work."""
     from scipy import ndimage
 
-    return tuple(_map_blocks(lambda f: f(x, size, mode="nearest"),
-                             [ndimage.maximum_filter, ndimage.minimum_filter]))
+    return [lambda f=f: f(x, size, mode="nearest")
+            for f in (ndimage.maximum_filter, ndimage.minimum_filter)]
+
+
+def _run_tasks(tasks: list) -> list:
+    """The results of calling each of ``tasks`` (no arguments), in order, on the
+    threads of :func:`_map_blocks`."""
+    return _map_blocks(lambda task: task(), tasks)
 
 
 #: The large scale (px, a multiple of the band's ``radius``) over which a smooth slope
