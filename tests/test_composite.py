@@ -360,7 +360,7 @@ def test_separable_bilinear_equals_map_coordinates():
     (order 1, edges clamped), to float32 rounding, also for points beyond the edges."""
     from scipy import ndimage
 
-    from mpib_validate.runtime.compositor.composite import _bilinear_separable
+    from mpib_validate.runtime.resample import bilinear_separable
 
     rng = np.random.default_rng(3)
     a = rng.random((9, 13, 4)).astype(np.float32)
@@ -369,7 +369,7 @@ def test_separable_bilinear_equals_map_coordinates():
     yy, xx = np.meshgrid(ty, tx, indexing="ij")
     want = np.stack([ndimage.map_coordinates(a[..., c], [yy, xx], order=1, mode="nearest")
                      for c in range(4)], axis=-1)
-    np.testing.assert_allclose(_bilinear_separable(a, ty, tx), want, atol=2e-7)
+    np.testing.assert_allclose(bilinear_separable(a, ty, tx), want, atol=2e-7)
 
 
 def test_an_error_in_the_blur_thread_reaches_the_caller_and_no_thread_is_left():

@@ -103,6 +103,54 @@ def test_window_means_and_extremes_are_those_of_the_clipped_windows():
         assert np.array_equal(_closing(x), ndimage.grey_closing(x, (3, 3), mode="nearest"))
 
 
+def test_half_and_double_keep_a_plane():
+    """:func:`half` averages 2x2 groups, :func:`double` interpolates bilinearly between
+    their centres: a plane comes back exactly (to float32 rounding) away from the first
+    row and column and the last two (where the doubling clamps, and an odd side's padded
+    group is not on the plane); odd sides are padded and cropped."""
+    from mpib_validate.runtime.resample import bilinear_separable, double, half
+
+    for H, W in ((8, 10), (9, 7), (2, 2), (1, 5)):
+        y, x = np.mgrid[0:H, 0:W].astype(np.float32)
+        plane = 0.5 + 0.01 * y - 0.02 * x
+        h = half(plane)
+        assert h.shape == (-(-H // 2), -(-W // 2))
+        back = double(h, (H, W))
+        assert back.shape == (H, W)
+        inner = (slice(1, max(1, H - 2)), slice(1, max(1, W - 2)))
+        np.testing.assert_allclose(back[inner], plane[inner], rtol=0, atol=1e-6)
+        np.testing.assert_array_equal(double(np.full_like(h, 0.25), (H, W)), 0.25)
+        # the doubling is the separable bilinear interpolation at the full pixels' centres
+        ty, tx = (np.arange(H) + 0.5) / 2 - 0.5, (np.arange(W) + 0.5) / 2 - 0.5
+        np.testing.assert_allclose(back, bilinear_separable(h, ty, tx), rtol=0, atol=1e-6)
+
+
+def test_subsampled_guided_filter_finds_the_colour_edge_of_the_full_one():
+    """The fast guided filter (statistics at half resolution, coefficients doubled and
+    applied to the full-resolution guide) steps at the same colour edge as the full
+    filter: a mask 3 px off a red-blue edge is pulled onto it, with ``q >= 1/2`` on
+    the same columns (the edge is in the guide, which stays at full resolution)."""
+    from mpib_validate.runtime.layers.refine import (guide_statistics, guided_apply,
+                                                     guided_filter)
+    from mpib_validate.runtime.resample import half
+
+    colour, _ = _two_regions(size=64, edge=31)  # an odd edge: inside a 2x2 group
+    guide = np.sqrt(colour).astype(np.float32)
+    p = np.zeros((64, 64), np.float32)
+    p[:, :34] = 1.0  # the mask, 3 px into the far side
+    full = guided_filter(guide, p, 8, 1e-4) >= 0.5
+    stats = guide_statistics(half(guide), 4, 1e-4)
+    fast = guided_apply(stats, p, 4, [guide[..., k].copy() for k in range(3)]) >= 0.5
+    rows = slice(16, 48)  # away from the top and bottom, where the windows are clipped
+    assert np.all(_crossing(full[rows].astype(float), 0.5) == 31)
+    assert np.array_equal(fast[rows], full[rows])
+    # the part asked for is that part of the whole
+    part = guided_apply(stats, p, 4, [guide[..., k].copy() for k in range(3)],
+                        ((10, 41), (5, 60)))
+    whole = guided_apply(stats, p, 4, [guide[..., k].copy() for k in range(3)])
+    np.testing.assert_array_equal(part, whole[10:41, 5:60])
+
+
 def _crossing(D, mid=0.3):
     """First column, per row, where the disparity drops below ``mid`` (the far side)."""
     return np.argmax(D < mid, axis=1)

@@ -56,6 +56,7 @@ from mpib_validate.runtime.compositor import kernels as _k
 from mpib_validate.runtime.cores import available_cores as _cores
 from mpib_validate.runtime.layers import mpi as _M
 from mpib_validate.runtime.layers.mpi import MPI, Layer
+from mpib_validate.runtime.resample import bilinear_separable
 
 
 @dataclass(frozen=True)
@@ -254,25 +255,7 @@ def _blur_reduced(layer: Layer, canvas, rects, s: int, kc, settings: CompositeSe
         blurred = _k.correlate_batch(coarse, kc, settings.conv, peak)
     for (y0, y1, x0, x1), b in zip(rects, blurred):
         ty, tx = _upsample_axis(y0, h, s, Rc), _upsample_axis(x0, w, s, Rc)
-        yield (y0, y1, x0, x1), _bilinear_separable(b, ty, tx)
-
-
-def _bilinear_separable(a: np.ndarray, ty: np.ndarray, tx: np.ndarray) -> np.ndarray:
-    """Bilinear interpolation of ``(h, w, C)`` at the grid ``ty x tx`` (cell centres at
-    integers, edges clamped), as two 1-D passes: the same values as
-    ``ndimage.map_coordinates(order=1, mode="nearest")`` at a fraction of the cost."""
-    def axis_lerp(arr, t, axis):
-        n = arr.shape[axis]
-        t = np.clip(t, 0.0, n - 1)
-        i0 = np.minimum(np.floor(t).astype(np.int64), max(n - 2, 0))
-        f = (t - i0).astype(np.float32)
-        i1 = np.minimum(i0 + 1, n - 1)
-        shape = [1] * arr.ndim
-        shape[axis] = -1
-        f = f.reshape(shape)
-        return np.take(arr, i0, axis=axis) * (1.0 - f) + np.take(arr, i1, axis=axis) * f
-
-    return np.ascontiguousarray(axis_lerp(axis_lerp(a, ty, 0), tx, 1), dtype=np.float32)
+        yield (y0, y1, x0, x1), bilinear_separable(b, ty, tx)
 
 
 def _reduction(rho: float, settings: CompositeSettings) -> int:
@@ -1146,7 +1129,7 @@ def _cell_weights(cells: np.ndarray, origin, y0: int, y1: int, x0: int, x1: int)
         return float(first[0]), float(first[1])
     ty = (np.arange(y0, y1) + 0.5) / f - 0.5 - cy0 - by0
     tx = (np.arange(x0, x1) + 0.5) / f - 0.5 - cx0 - bx0
-    w = _bilinear_separable(block, ty, tx)
+    w = bilinear_separable(block, ty, tx)
     return w[..., 0], w[..., 1]
 
 

@@ -22,7 +22,9 @@ edges:
    (guided feathering); where they do not, it is the box-blurred mask, whose
    mid-crossing is the predicted one. A second pass filters the sides ``q >= 1/2`` that
    the first gave (:data:`GUIDE_PASSES`): one pass undoes only part of an offset of
-   several pixels;
+   several pixels. ``a`` and ``b`` are fitted at half resolution and interpolated back
+   (He and Sun's fast guided filter, subsampling 2): they vary at the scale of the
+   window, and the edge comes from the full-resolution ``I``;
 4. each band pixel within ``flip_px`` of the predicted edge takes the side ``q >= 1/2``
    (deeper inside, its predicted side: a texture whose colours straddle the other
    side's would flip under the filter's linear colour model), then that side's value:
@@ -43,8 +45,8 @@ edges:
 
 The guide is ``(c / (1 + c))^(1/2.2)`` of the linear colour (bounded for HDR, contrast
 roughly as the eye sees it). Pure numpy/scipy; the guided filter runs only on the
-boxes of 32 px tiles near the predicted edges (with a margin of ``2 guide_radius``, so
-the result is that of the whole image), cut into blocks that run on one thread per
+boxes of 32 px tiles near the predicted edges (with a margin of what a pass reaches,
+so the result is that of the whole image), cut into blocks that run on one thread per
 core (:data:`MAX_THREADS`); ``mpib bench --suite photos`` states the cost at 2000x1333
 against the rest of the pipeline.
 """
@@ -54,6 +56,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
+from mpib_validate.runtime.resample import bilinear_separable, double, half
 
 
 #: The guided filter's ridge (squared guide units; the guide is gamma-encoded, about
@@ -137,11 +141,24 @@ def guide_statistics(guide: np.ndarray, r: int, eps: float) -> tuple:
     return I, mI, (c00, c01, c02, c11, c12, c22), det
 
 
-def guided_apply(stats: tuple, p: np.ndarray, r: int) -> np.ndarray:
+def guided_apply(stats: tuple, p: np.ndarray, r: int, guide=None, inner=None) -> np.ndarray:
     """:func:`guided_filter` of ``p`` with the guide's :func:`guide_statistics`
-    (same ``r``)."""
+    (same ``r``).
+
+    With ``guide`` (the full-resolution guide ``I`` as three ``(H, W)`` planes) and the
+    statistics of the guide halved by :func:`half`, the fast guided filter (He and Sun, "Fast Guided
+    Filter", 2015) with subsampling 2: ``p`` is halved too, ``a`` and ``b`` are fitted
+    and window-averaged at half resolution (``r`` in half-resolution pixels), and
+    ``q = up(mean(a))^T I + up(mean(b))`` with :func:`double` (bilinear) and the
+    full-resolution ``I``: a quarter of the box filters, and the same edge, since ``a``
+    and ``b`` vary at the scale of the window, not of the colour edge that ``I`` carries.
+    ``q`` at a pixel depends on the guide and ``p`` within ``2 (2 r + 2)`` px of it.
+    ``inner`` (``((y0, y1), (x0, x1))``, full-resolution pixels), if given, is the part
+    of ``q`` to return."""
     I, mI, (c00, c01, c02, c11, c12, c22), det = stats
     p = np.asarray(p, np.float32)
+    if guide is not None:
+        p = half(p)
     mp = box_mean(p, r)
     v0, v1, v2 = (box_mean(I[k] * p, r) - mI[k] * mp for k in range(3))
     a = (c00 * v0 + c01 * v1 + c02 * v2, c01 * v0 + c11 * v1 + c12 * v2,
@@ -149,13 +166,34 @@ def guided_apply(stats: tuple, p: np.ndarray, r: int) -> np.ndarray:
     a = [ak / det for ak in a]
     b = mp - (a[0] * mI[0] + a[1] * mI[1] + a[2] * mI[2])
     ma = [box_mean(ak, r) for ak in a]
-    return ma[0] * I[0] + ma[1] * I[1] + ma[2] * I[2] + box_mean(b, r)
+    mb = box_mean(b, r)
+    if guide is None:
+        return ma[0] * I[0] + ma[1] * I[1] + ma[2] * I[2] + mb
+    (y0, y1), (x0, x1) = inner or ((0, guide[0].shape[0]), (0, guide[0].shape[1]))
+    # the half-resolution pixels that the bilinear doubling reads for rows y0..y1 - 1
+    # (and columns): one more on each side, clipped (where the clamp is the image's)
+    hy0, hx0 = max(0, y0 // 2 - 1), max(0, x0 // 2 - 1)
+    hy1, hx1 = min(mb.shape[0], -(-y1 // 2) + 1), min(mb.shape[1], -(-x1 // 2) + 1)
+    shape = (y1 - 2 * hy0, x1 - 2 * hx0)
+    crop = (slice(y0 - 2 * hy0, None), slice(x0 - 2 * hx0, None))
+
+    def up(x):
+        return double(x[hy0:hy1, hx0:hx1], shape)[crop]
+
+    q = up(mb)
+    for k in range(3):
+        q += up(ma[k]) * guide[k][y0:y1, x0:x1]
+    return q
 
 
 def colour_guide(colour: np.ndarray) -> np.ndarray:
     """``(c / (1 + c))^(1/2.2)`` of the first three (linear, >= 0) channels."""
     c = np.maximum(np.asarray(colour, np.float32)[..., :3], 0.0)
-    return (c / (1.0 + c)) ** np.float32(1.0 / 2.2)
+    g = c / (1.0 + c)
+    with np.errstate(divide="ignore"):  # log 0 = -inf, and exp(-inf) = 0
+        np.log(g, out=g)
+    g *= np.float32(1.0 / 2.2)
+    return np.exp(g, out=g)
 
 
 def refine_disparity(colour: np.ndarray, disparity: np.ndarray, blur_parameter: float,
@@ -172,7 +210,8 @@ def refine_disparity(colour: np.ndarray, disparity: np.ndarray, blur_parameter: 
             radius difference ``A |d_1 - d_2|`` they make.
         radius: ``r`` of the uncertain band and of the window's side values (pixels):
             at least the predicted edge's half-width plus its misregistration.
-        guide_radius, eps: the guided filter's window radius (pixels) and ridge. Where
+        guide_radius, eps: the guided filter's window radius (pixels; the filter runs at
+            half resolution with half this radius, rounded) and ridge. Where
             the two sides' colours differ, a pixel between the colour edge and a mask
             edge ``s`` pixels off gets ``q`` near ``s / (2 guide_radius + 1)`` of the
             wrong side, so ``s`` up to about ``guide_radius / 2`` is undone (3 px at 8;
@@ -193,46 +232,58 @@ def refine_disparity(colour: np.ndarray, disparity: np.ndarray, blur_parameter: 
             photos`` measures both).
     """
     D = np.asarray(disparity, np.float64)
-    hi, lo, band = _window_sides(D, blur_parameter, radius, jump_px)
-    if not band.any():
-        return D.copy()
     # each pixel's predicted side: above or below the mid-level of a window that reaches
-    # flip_px (at most radius) beyond the band, so that a flat region next to the band (hi == lo there in
-    # the band's own window) keeps its side instead of making a false edge inside an
-    # object, where the colour of a texture would then flip pixels. The window's two
-    # extremes are taken on other threads while the edges are found.
+    # flip_px (at most radius) beyond the band, so that a flat region next to the band
+    # (hi == lo there in the band's own window) keeps its side instead of making a false
+    # edge inside an object, where the colour of a texture would then flip pixels. The
+    # four window extremes are taken on the threads at once.
     wide = 2 * (radius + min(flip_px, radius)) + 1
-    (band, weight), w_hi, w_lo = _run_tasks(
-        [lambda: _edges(D, band, hi, lo, blur_parameter, radius, jump_px)]
-        + _max_min_tasks(D, wide))
+    hi, lo, w_hi, w_lo = _run_tasks(_max_min_tasks(D, 2 * radius + 1)
+                                    + _max_min_tasks(D, wide))
+    band = blur_parameter * (hi - lo) > jump_px
     if not band.any():
         return D.copy()
-    m = D > 0.5 * (w_hi + w_lo)
+    f = 2 * flip_px + 1
+
+    def predicted():
+        m = D > 0.5 * (w_hi + w_lo)
+        return m, _extreme(m, f, np.maximum) != _extreme(m, f, np.minimum)
+
+    # the edges, and where the predicted side changes within flip_px, on two threads
+    (band, weight), (m, flips) = _run_tasks(
+        [lambda: _edges(D, band, hi, lo, blur_parameter, radius, jump_px), predicted])
+    if not band.any():
+        return D.copy()
     # the colour may move the side only within flip_px of the predicted edge: deeper
     # inside, a texture whose colours straddle the other side's (red and cyan stripes
     # before a grey wall) would flip under the guided filter's linear colour model
-    f = 2 * flip_px + 1
-    zone = band & (_extreme(m, f, np.maximum) != _extreme(m, f, np.minimum))
-    q = np.zeros(D.shape)
-    # q at a pixel depends on the guide and the filtered mask within 2 r of it, so on
-    # the guide within 2 r of it per pass
-    margin = 2 * guide_radius * GUIDE_PASSES
+    zone = band & flips
+    # the filter runs at half resolution (guided_apply), with windows of about the same
+    # size; q at a pixel depends on the guide and the filtered mask within 2 (2 r + 2) px
+    # of it per pass. The margin is even, so that every box halves on the image's grid.
+    r_half = max(1, int(round(guide_radius / 2)))
+    margin = 2 * (2 * r_half + 2) * GUIDE_PASSES
 
     def guided_box(box):
         y0, y1, x0, x1 = box
         Y0, Y1 = max(0, y0 - margin), min(D.shape[0], y1 + margin)
         X0, X1 = max(0, x0 - margin), min(D.shape[1], x1 + margin)
-        stats = guide_statistics(colour_guide(colour[Y0:Y1, X0:X1]), guide_radius, eps)
+        guide = colour_guide(colour[Y0:Y1, X0:X1])
+        stats = guide_statistics(half(guide), r_half, eps)
+        guide = [np.ascontiguousarray(guide[..., k]) for k in range(3)]
         mb, zb = m[Y0:Y1, X0:X1], zone[Y0:Y1, X0:X1]
-        qb = guided_apply(stats, mb, guide_radius)
-        for _ in range(GUIDE_PASSES - 1):
-            qb = guided_apply(stats, np.where(zb, qb >= 0.5, mb), guide_radius)
-        return qb[y0 - Y0:y1 - Y0, x0 - X0:x1 - X0]
+        qb = mb
+        for i in range(GUIDE_PASSES):
+            last = i == GUIDE_PASSES - 1
+            qb = guided_apply(stats, mb if i == 0 else np.where(zb, qb >= 0.5, mb), r_half,
+                              guide, ((y0 - Y0, y1 - Y0), (x0 - X0, x1 - X0)) if last else None)
+        return np.where(zone[y0:y1, x0:x1], qb >= 0.5, m[y0:y1, x0:x1])
 
+    # the side q >= 1/2 in the zone (whose tiles the boxes cover), the predicted one elsewhere
+    near = m.copy()
     boxes = list(_boxes(zone, TILE))
-    for (y0, y1, x0, x1), qb in zip(boxes, _map_blocks(guided_box, boxes)):
-        q[y0:y1, x0:x1] = qb
-    near = np.where(zone, q >= 0.5, m)
+    for (y0, y1, x0, x1), nb in zip(boxes, _map_blocks(guided_box, boxes)):
+        near[y0:y1, x0:x1] = nb
     if not thin:
         near = _thick_flips(near, m)
     if thin:
@@ -245,18 +296,29 @@ def refine_disparity(colour: np.ndarray, disparity: np.ndarray, blur_parameter: 
         with np.errstate(divide="ignore", invalid="ignore"):
             hi_t = lo + (md - lo) / fn
         thin_hi = band & (fn > 0.1) & (fn < 0.5)
-    hi_side, lo_side = _outside_sides(D, band, hi, lo, SIDE_REACH * radius)
-    if thin:
-        hi_side = np.where(thin_hi, np.maximum(hi_t, hi_side), hi_side)
-    side = np.where(near, hi_side, lo_side)
-    own = (near == m) & (blur_parameter * np.abs(D - side) <= keep_px)
-    out = np.where(band & ~own, side, D)
+    if thin or keep_px > 0:
+        hi_side, lo_side = _outside_sides(D, band, hi, lo, SIDE_REACH * radius)
+        if thin:
+            hi_side = np.where(thin_hi, np.maximum(hi_t, hi_side), hi_side)
+        side = np.where(near, hi_side, lo_side)
+        own = (near == m) & (blur_parameter * np.abs(D - side) <= keep_px)
+        out = np.where(band & ~own, side, D)
+    else:
+        # each band pixel takes its side's value (one whose value is its own keeps it
+        # either way), written on the band pixels only
+        out = D.copy()
+        for box, at, h, l in _outside_side_blocks(D, band, hi, lo, SIDE_REACH * radius):
+            out[box][at] = np.where(near[box][at], h, l)
     if not thin:
         # slivers where the colour moved a pixel across the predicted edge (and next to it)
         moved = band & (near != m)
         grown = _extreme(moved, 3, np.maximum)
         out = _no_new_slivers(out, D, grown, blur_parameter, jump_px, moved)
-    return D + weight * (out - D)
+    # D + weight (out - D), in place
+    out -= D
+    out *= weight
+    out += D
+    return out
 
 
 #: Passes of the guided filter (:func:`refine_disparity`, step 3): each pass after the
@@ -405,44 +467,70 @@ def _outside_sides(D, band, hi, lo, reach):
     ``2 reach``, which hold every pixel that the answer depends on (up to ties between
     equidistant pixels)."""
     hi_side, lo_side = hi.copy(), lo.copy()
+    for out, at, h, l in _outside_side_blocks(D, band, hi, lo, reach):
+        hi_side[out][at], lo_side[out][at] = h, l
+    return hi_side, lo_side
 
+
+def _outside_side_blocks(D, band, hi, lo, reach) -> list:
+    """:func:`_outside_sides` as ``(out, at, hi_side, lo_side)`` per block: the block's
+    box (a pair of slices), its band pixels (index arrays into the box) and their two
+    side values."""
     def block(item):
         _, sub, inner = item
         return _outside_sides_box(D[sub], band[sub], hi[sub], lo[sub], reach, inner)
 
     blocks = list(_blocks(band, 2 * int(np.ceil(reach))))
-    for (out, _, _), (at, h, l) in zip(blocks, _map_blocks(block, blocks)):
-        hi_side[out][at], lo_side[out][at] = h, l
-    return hi_side, lo_side
+    return [(out, *res) for (out, _, _), res in zip(blocks, _map_blocks(block, blocks))]
 
 
 def _outside_sides_box(D, band, hi, lo, reach, inner=(slice(0, None), slice(0, None))):
     """:func:`_outside_sides` on one box: ``(at, hi_side, lo_side)``, the band pixels of
     its ``inner`` part (a pair of slices; index arrays into that part) and their two side
     values."""
-    from scipy import ndimage
-
     mid = 0.5 * (hi + lo)
-    nearest_band = ndimage.distance_transform_edt(~band, return_distances=False,
-                                                  return_indices=True)
-    mid_outside = mid[tuple(nearest_band)]
+    nearest_band = _nearest_in(band)
+    # a side value lies within reach of an inner band pixel: the nearest one of each side
+    # is looked for in the inner part grown by reach (its pixels' nearest band pixels
+    # lie within reach of them, in the box)
+    (iy0, iy1, _), (ix0, ix1, _) = (s.indices(n) for s, n in zip(inner, band.shape))
+    g = int(math.ceil(reach))
+    cy0, cy1 = max(0, iy0 - g), min(band.shape[0], iy1 + g)
+    cx0, cx1 = max(0, ix0 - g), min(band.shape[1], ix1 + g)
+    crop = (slice(cy0, cy1), slice(cx0, cx1))
+    mid_outside = mid[nearest_band[0][crop], nearest_band[1][crop]]
     del nearest_band
-    at = np.nonzero(band[inner])
-    y = at[0] + inner[0].start
-    x = at[1] + inner[1].start
+    D, band, hi, lo = D[crop], band[crop], hi[crop], lo[crop]
+    W = band.shape[1]
+    at = np.nonzero(band[iy0 - cy0:iy1 - cy0, ix0 - cx0:ix1 - cx0])
+    y, x = at[0] + (iy0 - cy0), at[1] + (ix0 - cx0)
+    flat = y * W + x  # the band pixels as flat indices: one take instead of two
+    hi_at, lo_at = hi.ravel().take(flat), lo.ravel().take(flat)
     out = []
-    for upper, fallback in ((True, hi), (False, lo)):
+    for upper, fallback in ((True, hi_at), (False, lo_at)):
         sel = ~band & ((D > mid_outside) if upper else (D <= mid_outside))
         if not sel.any():
-            out.append(fallback[y, x])
+            out.append(fallback)
             continue
-        iy, ix = ndimage.distance_transform_edt(~sel, return_distances=False,
-                                                return_indices=True)[:, y, x]
+        iy, ix = (f.ravel().take(flat) for f in _nearest_in(sel))
         # the Euclidean distance as scipy's transform gives it, at the band pixels only
-        dist = np.sqrt(((iy - y) ** 2 + (ix - x) ** 2).astype(np.float64))
-        value = np.where(dist <= reach, D[iy, ix], fallback[y, x])
-        out.append(np.clip(value, lo[y, x], hi[y, x]))
+        dy, dx = iy - y, ix - x
+        dist = np.sqrt((dy * dy + dx * dx).astype(np.float64))
+        value = np.where(dist <= reach, D.ravel().take(iy * W + ix), fallback)
+        out.append(np.minimum(np.maximum(value, lo_at), hi_at))
     return at, out[0], out[1]
+
+
+def _nearest_in(mask: np.ndarray) -> np.ndarray:
+    """``(2, H, W)``: for each pixel not in ``mask``, the indices of the nearest pixel of
+    ``mask`` (scipy's exact Euclidean feature transform). Only the pixels of ``mask``
+    with one outside it among their 8 neighbours can be the nearest (from any other, a
+    step towards the pixel reaches a nearer one of ``mask``), so only they are seeds:
+    the same answer, about twice as fast where ``mask`` is wide."""
+    from scipy import ndimage
+
+    edge = mask & ~_extreme(mask, 3, np.minimum)
+    return ndimage.distance_transform_edt(~edge, return_distances=False, return_indices=True)
 
 
 def _window_sides(D: np.ndarray, blur_parameter: float, radius: int, jump_px: float):
@@ -463,12 +551,21 @@ def _extreme(x: np.ndarray, size: int, fn) -> np.ndarray:
     r = size // 2
     out = x
     for axis in (0, 1):
-        src, out = out, out.copy()
+        src = out
         n = src.shape[axis]
+        if r < 1 or n < 2:
+            out = src.copy()
+            continue
+        out = np.empty_like(src)
         for k in range(1, min(r, n - 1) + 1):
             a = (slice(0, n - k),) if axis == 0 else (slice(None), slice(0, n - k))
             b = (slice(k, n),) if axis == 0 else (slice(None), slice(k, n))
-            fn(out[a], src[b], out=out[a])
+            if k == 1:  # the first shift writes the new array: no copy of src
+                fn(src[a], src[b], out=out[a])
+                last = (slice(n - 1, n),) if axis == 0 else (slice(None), slice(n - 1, n))
+                out[last] = src[last]
+            else:
+                fn(out[a], src[b], out=out[a])
             fn(out[b], src[a], out=out[b])
     return out
 
@@ -545,8 +642,8 @@ def _edges(D, band, hi, lo, blur_parameter, radius, jump_px):
                     ndimage.gaussian_filter(small, s, order=(0, 1), mode="nearest"))
     # the range that slope spans over the window's diagonal, in blur radius (px)
     grad *= blur_parameter * 2.0 * math.sqrt(2.0) * radius / f
-    slope = ndimage.zoom(grad.astype(np.float32), f, order=1, grid_mode=True,
-                         mode="nearest")[:H, :W]
+    slope = bilinear_separable(grad.astype(np.float32), (np.arange(H) + 0.5) / f - 0.5,
+                               (np.arange(W) + 0.5) / f - 0.5)
     edges = band & (blur_parameter * (hi - lo) - slope > jump_px)
     weight = np.clip(2.0 * box_mean(edges.astype(np.float32), radius), 0.0, 1.0)
     return edges, weight
