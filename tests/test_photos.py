@@ -375,7 +375,9 @@ def test_side_values_reach_outside_the_band_tiles():
     band = (x >= 32) & (x < 64)
     hi = np.full((H, W), D.max())
     lo = np.full((H, W), D.min())
-    boxed = refine._outside_sides(D, band, hi, lo, 18)
+    boxed = [hi.copy(), lo.copy()]
+    for box, b_at, h, l in refine._outside_side_blocks(D, band, hi, lo, 18):
+        boxed[0][box][b_at], boxed[1][box][b_at] = h, l
     at, *whole = refine._outside_sides_box(D, band, hi, lo, 18)
     for b, w in zip(boxed, whole):
         np.testing.assert_array_equal(b[at], w)

@@ -25,7 +25,7 @@ def double(x: np.ndarray, shape) -> np.ndarray:
     """``x`` (``(h, w)``, a :func:`half` grid) at twice its resolution, bilinear between
     the half-resolution pixel centres (weights 3/4 and 1/4; clamped at the edges),
     cropped to ``shape``: :func:`bilinear_separable` at ``t = (i + 1/2) / 2 - 1/2``,
-    written as slices (about 3 times as fast as its gathers)."""
+    written as slices (about twice as fast as its gathers at 592x592, measured)."""
     x = np.asarray(x, np.float32)
     h, w = x.shape
     rows = np.empty((2 * h, w), np.float32)

@@ -153,8 +153,9 @@ def guided_apply(stats: tuple, p: np.ndarray, r: int, guide=None, inner=None) ->
     full-resolution ``I``: a quarter of the box filters, and the same edge, since ``a``
     and ``b`` vary at the scale of the window, not of the colour edge that ``I`` carries.
     ``q`` at a pixel depends on the guide and ``p`` within ``2 (2 r + 2)`` px of it.
-    ``inner`` (``((y0, y1), (x0, x1))``, full-resolution pixels), if given, is the part
-    of ``q`` to return."""
+
+    ``inner`` (``((y0, y1), (x0, x1))``, pixels of ``q``), if given, is the part of ``q``
+    to return (the fast filter then interpolates that part only)."""
     I, mI, (c00, c01, c02, c11, c12, c22), det = stats
     p = np.asarray(p, np.float32)
     if guide is not None:
@@ -168,7 +169,8 @@ def guided_apply(stats: tuple, p: np.ndarray, r: int, guide=None, inner=None) ->
     ma = [box_mean(ak, r) for ak in a]
     mb = box_mean(b, r)
     if guide is None:
-        return ma[0] * I[0] + ma[1] * I[1] + ma[2] * I[2] + mb
+        q = ma[0] * I[0] + ma[1] * I[1] + ma[2] * I[2] + mb
+        return q if inner is None else q[slice(*inner[0]), slice(*inner[1])]
     (y0, y1), (x0, x1) = inner or ((0, guide[0].shape[0]), (0, guide[0].shape[1]))
     # the half-resolution pixels that the bilinear doubling reads for rows y0..y1 - 1
     # (and columns): one more on each side, clipped (where the clamp is the image's)
@@ -272,11 +274,10 @@ def refine_disparity(colour: np.ndarray, disparity: np.ndarray, blur_parameter: 
         stats = guide_statistics(half(guide), r_half, eps)
         guide = [np.ascontiguousarray(guide[..., k]) for k in range(3)]
         mb, zb = m[Y0:Y1, X0:X1], zone[Y0:Y1, X0:X1]
-        qb = mb
-        for i in range(GUIDE_PASSES):
-            last = i == GUIDE_PASSES - 1
-            qb = guided_apply(stats, mb if i == 0 else np.where(zb, qb >= 0.5, mb), r_half,
-                              guide, ((y0 - Y0, y1 - Y0), (x0 - X0, x1 - X0)) if last else None)
+        p = mb
+        for _ in range(GUIDE_PASSES - 1):
+            p = np.where(zb, guided_apply(stats, p, r_half, guide) >= 0.5, mb)
+        qb = guided_apply(stats, p, r_half, guide, ((y0 - Y0, y1 - Y0), (x0 - X0, x1 - X0)))
         return np.where(zone[y0:y1, x0:x1], qb >= 0.5, m[y0:y1, x0:x1])
 
     # the side q >= 1/2 in the zone (whose tiles the boxes cover), the predicted one elsewhere
@@ -296,19 +297,20 @@ def refine_disparity(colour: np.ndarray, disparity: np.ndarray, blur_parameter: 
         with np.errstate(divide="ignore", invalid="ignore"):
             hi_t = lo + (md - lo) / fn
         thin_hi = band & (fn > 0.1) & (fn < 0.5)
-    if thin or keep_px > 0:
-        hi_side, lo_side = _outside_sides(D, band, hi, lo, SIDE_REACH * radius)
+    # each band pixel takes its side's value, written on the band pixels only; with
+    # keep_px, one within keep_px of its own value keeps that (at 0 the two are equal)
+    out = D.copy()
+    for box, at, h, l in _outside_side_blocks(D, band, hi, lo, SIDE_REACH * radius):
+        n = near[box][at]
         if thin:
-            hi_side = np.where(thin_hi, np.maximum(hi_t, hi_side), hi_side)
-        side = np.where(near, hi_side, lo_side)
-        own = (near == m) & (blur_parameter * np.abs(D - side) <= keep_px)
-        out = np.where(band & ~own, side, D)
-    else:
-        # each band pixel takes its side's value (one whose value is its own keeps it
-        # either way), written on the band pixels only
-        out = D.copy()
-        for box, at, h, l in _outside_side_blocks(D, band, hi, lo, SIDE_REACH * radius):
-            out[box][at] = np.where(near[box][at], h, l)
+            t = thin_hi[box][at]
+            h = np.where(t, np.maximum(hi_t[box][at], h), h)
+        value = np.where(n, h, l)
+        if keep_px > 0:
+            d = D[box][at]
+            own = (n == m[box][at]) & (blur_parameter * np.abs(d - value) <= keep_px)
+            value = np.where(own, d, value)
+        out[box][at] = value
     if not thin:
         # slivers where the colour moved a pixel across the predicted edge (and next to it)
         moved = band & (near != m)
@@ -458,36 +460,27 @@ def _no_new_slivers(R: np.ndarray, D: np.ndarray, band: np.ndarray, blur_paramet
 SIDE_REACH = 3
 
 
-def _outside_sides(D, band, hi, lo, reach):
-    """``(hi_side, lo_side)`` on the band (elsewhere ``hi``, ``lo``): the disparity of
-    the nearest pixel outside the band whose disparity lies above (below or at) the
-    mid-level ``(hi + lo) / 2`` of the band pixel nearest to it, where one lies within
-    ``reach`` px; else ``hi`` (``lo``). Clipped to ``[lo, hi]``. Exact Euclidean nearest
-    (scipy's feature transform), computed on the boxes of the band's tiles grown by
-    ``2 reach``, which hold every pixel that the answer depends on (up to ties between
-    equidistant pixels)."""
-    hi_side, lo_side = hi.copy(), lo.copy()
-    for out, at, h, l in _outside_side_blocks(D, band, hi, lo, reach):
-        hi_side[out][at], lo_side[out][at] = h, l
-    return hi_side, lo_side
-
-
 def _outside_side_blocks(D, band, hi, lo, reach) -> list:
-    """:func:`_outside_sides` as ``(out, at, hi_side, lo_side)`` per block: the block's
-    box (a pair of slices), its band pixels (index arrays into the box) and their two
-    side values."""
+    """The side values of the band pixels, as ``(box, at, hi_side, lo_side)`` per block
+    of the band's tiles: the block's box (a pair of slices), its band pixels (index
+    arrays into the box) and their two side values, the disparity of the nearest pixel
+    outside the band whose disparity lies above (below or at) the mid-level
+    ``(hi + lo) / 2`` of the band pixel nearest to it, where one lies within ``reach``
+    px; else ``hi`` (``lo``). Clipped to ``[lo, hi]``. Exact Euclidean nearest (scipy's
+    feature transform), computed on the blocks grown by ``2 reach``, which hold every
+    pixel that the answer depends on (up to ties between equidistant pixels)."""
     def block(item):
         _, sub, inner = item
         return _outside_sides_box(D[sub], band[sub], hi[sub], lo[sub], reach, inner)
 
     blocks = list(_blocks(band, 2 * int(np.ceil(reach))))
-    return [(out, *res) for (out, _, _), res in zip(blocks, _map_blocks(block, blocks))]
+    return [(box, *res) for (box, _, _), res in zip(blocks, _map_blocks(block, blocks))]
 
 
 def _outside_sides_box(D, band, hi, lo, reach, inner=(slice(0, None), slice(0, None))):
-    """:func:`_outside_sides` on one box: ``(at, hi_side, lo_side)``, the band pixels of
-    its ``inner`` part (a pair of slices; index arrays into that part) and their two side
-    values."""
+    """:func:`_outside_side_blocks` on one box: ``(at, hi_side, lo_side)``, the band
+    pixels of its ``inner`` part (a pair of slices; index arrays into that part) and
+    their two side values."""
     mid = 0.5 * (hi + lo)
     nearest_band = _nearest_in(band)
     # a side value lies within reach of an inner band pixel: the nearest one of each side
