@@ -146,8 +146,8 @@ def guided_apply(stats: tuple, p: np.ndarray, r: int, guide=None, inner=None) ->
     (same ``r``).
 
     With ``guide`` (the full-resolution guide ``I`` as three ``(H, W)`` planes) and the
-    statistics of the guide halved by :func:`half`, the fast guided filter (He and Sun, "Fast Guided
-    Filter", 2015) with subsampling 2: ``p`` is halved too, ``a`` and ``b`` are fitted
+    statistics of the guide halved by :func:`half`, the fast guided filter (He and Sun,
+    "Fast Guided Filter", 2015) with subsampling 2: ``p`` is halved too, ``a`` and ``b`` are fitted
     and window-averaged at half resolution (``r`` in half-resolution pixels), and
     ``q = up(mean(a))^T I + up(mean(b))`` with :func:`double` (bilinear) and the
     full-resolution ``I``: a quarter of the box filters, and the same edge, since ``a``
@@ -242,7 +242,7 @@ def refine_disparity(colour: np.ndarray, disparity: np.ndarray, blur_parameter: 
     wide = 2 * (radius + min(flip_px, radius)) + 1
     hi, lo, w_hi, w_lo = _run_tasks(_max_min_tasks(D, 2 * radius + 1)
                                     + _max_min_tasks(D, wide))
-    band = blur_parameter * (hi - lo) > jump_px
+    band = _jumps(hi, lo, blur_parameter, jump_px)
     if not band.any():
         return D.copy()
     f = 2 * flip_px + 1
@@ -531,7 +531,13 @@ def _window_sides(D: np.ndarray, blur_parameter: float, radius: int, jump_px: fl
     ``(2 radius + 1)^2`` window, and the uncertain band where they differ by more than
     ``jump_px`` of blur radius (``A (hi - lo) > jump_px``)."""
     hi, lo = _max_min(D, 2 * radius + 1)
-    return hi, lo, blur_parameter * (hi - lo) > jump_px
+    return hi, lo, _jumps(hi, lo, blur_parameter, jump_px)
+
+
+def _jumps(hi: np.ndarray, lo: np.ndarray, blur_parameter: float, jump_px: float) -> np.ndarray:
+    """The uncertain band: where a window's extremes differ by more than ``jump_px`` of
+    blur radius, ``A (hi - lo) > jump_px``."""
+    return blur_parameter * (hi - lo) > jump_px
 
 
 def _extreme(x: np.ndarray, size: int, fn) -> np.ndarray:
