@@ -834,3 +834,26 @@ def test_matting_variant_mattes_the_band_around_the_jumps_only():
     shown_default = next(sh for sh in default if isinstance(sh, Sheet))
     assert np.array_equal(shown.alpha[:, ~band], shown_default.alpha[:, ~band])
     assert np.all(shown.alpha[:, band] == 0)
+
+
+def test_side_smoothing_is_the_mean_over_each_sides_band_pixels_in_the_window():
+    """Each band pixel's value becomes the mean of the values of the band pixels on its
+    side within the (2s+1)^2 window, clipped at the image; pixels off the band keep
+    theirs. Checked against the sum written out pixel by pixel."""
+    from mpib_validate.runtime.layers import refine
+
+    rng = np.random.default_rng(3)
+    H, W, s = 23, 31, 2
+    out = rng.random((H, W))
+    band = rng.random((H, W)) < 0.4
+    near = rng.random((H, W)) < 0.5
+    want = out.copy()
+    for y, x in zip(*np.nonzero(band)):
+        win = (slice(max(0, y - s), y + s + 1), slice(max(0, x - s), x + s + 1))
+        sel = band[win] & (near[win] == near[y, x])
+        want[y, x] = out[win][sel].mean()
+    got = refine._smooth_sides(out.copy(), band, near, s)
+    # float32 window sums of values in [0, 1]: about 1e-7 each
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)
+    assert np.abs(got - out)[band].max() > 0.1
+    np.testing.assert_array_equal(got[~band], out[~band])

@@ -921,24 +921,25 @@ class _Chain:
         return alpha, cells, box
 
     def _weights(self, slab, foot, tiles):
-        """``(w, (cy0, cx0))``: on :data:`_ONE_CELL` px cells (from cell ``(cy0, cx0)``)
-        over the box of ``tiles`` and around it, the two weights of
-        :func:`_disjoint_over_last` for the slab on the last one, ``w[..., 0] = same``
-        and ``w[..., 1] = deep`` (:func:`_cell_weights` reads them at pixels):
+        """``(same, (cy0, cx0), deep)``, the two weights of :func:`_disjoint_over_last`
+        for the slab on the last one over the box of ``tiles`` and around it (from canvas
+        pixel ``(4 cy0, 4 cx0)``):
 
-        - *same*, how far the two are one surface: 1 where either holds content, but 0
-          within the slab's blur reach of a place where both do. Visible content never
-          overlaps itself, so content of the last slab under this one is hidden
-          background filled behind it: the two meet at a depth jump, and what lies
-          behind both may show between them;
-        - *deep*, how far the pixel lies inside the two's opaque footprint: 0 within
-          ``R`` px of a pixel they do not cover opaquely (``R`` the larger of their
-          blur reaches), rising linearly to 1 at ``R + 1``. A thin lens sees only
-          them there, so nothing behind fills their shortfall.
+        - *same*, on :data:`_ONE_CELL` px cells (from cell ``(cy0, cx0)``;
+          :func:`_cell_weights` reads it at pixels), how far the two are one surface: 1
+          where either holds content, but 0 within the slab's blur reach of a place
+          where both do. Visible content never overlaps itself, so content of the last
+          slab under this one is hidden background filled behind it: the two meet at a
+          depth jump, and what lies behind both may show between them;
+        - *deep*, per pixel (a number where it is the same everywhere), how far the
+          pixel lies inside the two's opaque footprint: :func:`_depth_ramp` of its
+          distance to the nearest pixel they do not cover opaquely
+          (:func:`_deep_inside`), 0 within ``R`` px (``R`` the larger of their blur
+          reaches), rising linearly to 1 at ``R + 1``. A thin lens sees only them
+          there, so nothing behind fills their shortfall.
 
-        A cell is opaque when all its pixels are, and its distance is taken one cell
-        short. Beyond the canvas the compositor continues the content: there it counts
-        as opaque."""
+        Beyond the canvas the compositor continues the content: there it counts as
+        opaque."""
         from scipy import ndimage
 
         f = _ONE_CELL
@@ -954,22 +955,16 @@ class _Chain:
         cx0, cx1 = max(0, x0 // f - grow), min(foot[1].shape[1], -(-x1 // f) + grow)
         py, px = slice(cy0 * f, cy1 * f), slice(cx0 * f, cx1 * f)
         here, last = foot[1][cy0:cy1, cx0:cx1], self.last_foot[1][cy0:cy1, cx0:cx1]
-        w = np.zeros((cy1 - cy0, cx1 - cx0, 2), np.float32)
-        w[..., 0] = here | last
+        same = (here | last).astype(np.float32)
         if (here & last).any():  # cells where both may hold content: at one pixel?
             jump = _cells((foot[0][py, px] > 0) & (self.last_foot[0][py, px] > 0))
             if jump.any():
                 n = 2 * int(math.ceil(R / f)) + 3
-                w[ndimage.maximum_filter(jump, size=n), 0] = 0.0
+                same[ndimage.maximum_filter(jump, size=n)] = 0.0
         solid = (foot[0][py, px] + self.last_foot[0][py, px]) >= np.float32(1.0 - 1e-3)
         solid[H - cy0 * f:, :] = True
         solid[:, W - cx0 * f:] = True
-        cells = _cells(solid, every=True)
-        if cells.all():
-            w[..., 1] = 1.0
-        elif cells.any():
-            w[..., 1] = _depth_ramp(f * (ndimage.distance_transform_edt(cells) - 1.0), R)
-        return w, (cy0, cx0)
+        return same, (cy0, cx0), _deep_inside(solid, R)
 
     def push(self, acc, group_sum, group_tiles, slab) -> None:
         """Add the summed slab ``group_sum`` (written on ``group_tiles``; cleared here)."""
@@ -993,7 +988,8 @@ class _Chain:
             self.cover[y0:y1, x0:x1] += a
             self.cover_reach[y0:y1, x0:x1] += np.float32(self._slab_reach(slab)) * a
         if not fresh:
-            cells, origin = self._weights(slab, foot, group_tiles)
+            same, origin, deep = self._weights(slab, foot, group_tiles)
+            oy, ox = origin[0] * _ONE_CELL, origin[1] * _ONE_CELL
         if self.last_tiles is not None:  # the last slab is zero where this one is not
             for y0, y1, x0, x1 in _runs(self.last_tiles & ~group_tiles, _TILE, self.frame):
                 self.last_sum[y0 - m:y1 - m, x0 - m:x1 - m] = 0.0
@@ -1004,7 +1000,8 @@ class _Chain:
             if fresh:
                 c[...] = g
             else:
-                _disjoint_over_last(c, last, g, *_cell_weights(cells, origin, y0, y1, x0, x1))
+                d = deep if np.isscalar(deep) else deep[y0 - oy:y1 - oy, x0 - ox:x1 - ox]
+                _disjoint_over_last(c, last, g, _cell_weights(same, origin, y0, y1, x0, x1), d)
             last[...] = g
             g[...] = 0.0
         self.last_tiles = group_tiles.copy()
@@ -1096,13 +1093,14 @@ def _depth_ramp(dist: np.ndarray, R) -> np.ndarray:
     grain, which in a dark region is tens of display levels (a visor's black rim before
     a light wall: 20 to 30). A ramp wider than a pixel kept that pattern over its width,
     with an end that a blur of ``R`` cannot make; one pixel keeps the rule continuous
-    enough (the weights are also read bilinearly on 4 px cells)."""
+    enough."""
     return np.clip(dist - R, 0.0, 1.0)
 
 
 #: Side (px) of the cells on which a chain decides where a slab and the last one are
-#: one surface and how deep inside it a pixel lies (:meth:`_Chain._weights`; bilinear
-#: between cell centres, so that the rule changes continuously).
+#: one surface (:meth:`_Chain._weights`; bilinear between cell centres, so that the
+#: rule changes continuously), and which bound how deep inside their footprint a pixel
+#: lies (:func:`_deep_inside`).
 _ONE_CELL = 4  # :func:`_cells` reads 4 bools as one word
 
 
@@ -1116,21 +1114,86 @@ def _cells(mask: np.ndarray, every: bool = False) -> np.ndarray:
 
 
 def _cell_weights(cells: np.ndarray, origin, y0: int, y1: int, x0: int, x1: int):
-    """The weights ``(same, deep)`` of :meth:`_Chain._weights` (on cells from cell
-    ``origin``) at canvas pixels ``[y0, y1) x [x0, x1)``: bilinear between the cells'
-    centres, so that they change continuously; two numbers where the cells around are
-    all alike."""
+    """The weight *same* of :meth:`_Chain._weights` (on cells from cell ``origin``) at
+    canvas pixels ``[y0, y1) x [x0, x1)``: bilinear between the cells' centres, so that
+    it changes continuously; a number where the cells around are all alike."""
     f = _ONE_CELL
     cy0, cx0 = origin
     by0, bx0 = max(0, (y0 // f) - 1 - cy0), max(0, (x0 // f) - 1 - cx0)
     block = cells[by0:-(-y1 // f) + 1 - cy0, bx0:-(-x1 // f) + 1 - cx0]
     first = block[0, 0]
     if (block == first).all():
-        return float(first[0]), float(first[1])
+        return float(first)
     ty = (np.arange(y0, y1) + 0.5) / f - 0.5 - cy0 - by0
     tx = (np.arange(x0, x1) + 0.5) / f - 0.5 - cx0 - bx0
-    w = bilinear_separable(block, ty, tx)
-    return w[..., 0], w[..., 1]
+    return bilinear_separable(block, ty, tx)
+
+
+def _deep_inside(solid: np.ndarray, R: int):
+    """:func:`_depth_ramp` ``clip(d - R, 0, 1)`` of the Euclidean distance ``d`` (px)
+    from each pixel of ``solid`` (bool, sides multiples of :data:`_ONE_CELL`) to the
+    nearest False pixel of the array, as ``scipy.ndimage.distance_transform_edt`` gives
+    it, computed only where the ramp is decided (float32; a number where it is 0 or 1
+    everywhere).
+
+    On 4 px cells the distance ``c`` (px) between the centre of a pixel's cell and that
+    of the nearest cell not wholly solid bounds it, ``|d - c| <= 3 sqrt 2`` (each pixel
+    lies within ``1.5 sqrt 2`` of its cell's centre): the ramp is 1 where
+    ``c - 3 sqrt 2 >= R + 1``, 0 in cells wholly not solid and where
+    ``c + 3 sqrt 2 <= R``. In the cells left, a ring about 10 px wide at ``R`` from the
+    edge, ``d`` is exact and clipped at ``R + 1``: the distance ``g`` to the nearest
+    False pixel in the pixel's column (running extremes of row indices), then
+    ``d^2 = min_{|k| <= R + 1} k^2 + g(x + k)^2`` along the row (Felzenszwalb and
+    Huttenlocher's separable form, on the ring's pixels only)."""
+    from scipy import ndimage
+
+    f = _ONE_CELL
+    H, W = solid.shape
+    whole = _cells(solid, every=True)
+    if whole.all():
+        return 1.0
+    part = _cells(solid)
+    if not part.any():
+        return 0.0
+    c = f * ndimage.distance_transform_edt(whole)
+    slack = 3.0 * math.sqrt(2.0) + 1e-3
+    r1 = R + 1
+    deep = np.empty((H, W), np.float32)
+    deep.reshape(H // f, f, W // f, f)[...] = (c - slack >= r1)[:, None, :, None]
+    ring = (c - slack < r1) & (c + slack > R) & part
+    if not ring.any():
+        return deep
+    # the ring's box, and every pixel within R + 1 of it
+    rows, cols = np.flatnonzero(ring.any(axis=1)), np.flatnonzero(ring.any(axis=0))
+    Y0, Y1 = max(0, rows[0] * f - r1), min(H, (rows[-1] + 1) * f + r1)
+    X0, X1 = max(0, cols[0] * f - r1), min(W, (cols[-1] + 1) * f + r1)
+    free = ~solid[Y0:Y1, X0:X1]
+    h, w = free.shape
+    kind = np.int16 if h < 2 ** 14 else np.int32
+    far = kind(np.iinfo(kind).max // 2)
+    ys = np.arange(h, dtype=kind)[:, None]
+    above = np.where(free, ys, -far)  # the last free row at or above, per column
+    np.maximum.accumulate(above, axis=0, out=above)
+    np.subtract(ys, above, out=above)
+    below = np.where(free, ys, far)[::-1]  # the first at or below
+    np.minimum.accumulate(below, axis=0, out=below)
+    below = below[::-1]
+    below -= ys
+    g = np.full((h, w + 2 * r1), r1, np.float32)  # padded by R + 1 columns (none free)
+    np.minimum(np.minimum(above, below), r1, out=g[:, r1:r1 + w], casting="unsafe")
+    cy, cx = np.nonzero(ring)
+    i = np.arange(f)
+    py = (f * cy[:, None, None] + i[None, :, None] - Y0) + np.zeros(f, int)
+    px = (f * cx[:, None, None] + i[None, None, :] - X0) + np.zeros((f, 1), int)
+    py, px = py.ravel(), px.ravel()
+    g = g.ravel()
+    at = py * (w + 2 * r1) + px + r1
+    d2 = g[at] ** 2
+    for k in range(1, r1 + 1):
+        gk = np.minimum(g[at - k], g[at + k])
+        np.minimum(d2, gk * gk + np.float32(k * k), out=d2)
+    deep[py + Y0, px + X0] = _depth_ramp(np.sqrt(d2), np.float32(R))
+    return deep
 
 
 def _disjoint_over_last(chain: np.ndarray, last: np.ndarray, g: np.ndarray,
