@@ -524,9 +524,11 @@ def refocus_estimate(disparity: np.ndarray, blur_parameter: float, focus_dispari
     if p.composite.chain_px is not None:
         # composite._Chain: the chain's own sum and its last slab (16 B/px each), two
         # slab footprints, the chain's summed footprint and its reach-weighted sum
-        # (float32, 4 B/px each) and the weights of a push (two float32 channels over
-        # the slab's box, and as much again while they are interpolated from cells)
-        acc += (16 + 16 + 16 + 16) * px
+        # (float32, 4 B/px each) and the weights of a push over the slab's box: the
+        # depth weight (float32), and while it is computed the opaque mask, its
+        # column distances (two int16), their padded float32 copy and a bounded part of
+        # the ring's pixels: up to 18 B/px (traced, a busy 2000x1336 mask)
+        acc += (16 + 16 + 16 + 18) * px
     edge = _edge_fraction(D, p.passes.jump_px / A)
     if edge > 0:  # jumps: the hidden background is filled
         edges_phase = (BUILD_BYTES_PER_PX + BUILD_BYTES_PER_EDGE_PX * edge) * px

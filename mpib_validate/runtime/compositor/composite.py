@@ -1181,19 +1181,27 @@ def _deep_inside(solid: np.ndarray, R: int):
     below -= ys
     g = np.full((h, w + 2 * r1), r1, np.float32)  # padded by R + 1 columns (none free)
     np.minimum(np.minimum(above, below), r1, out=g[:, r1:r1 + w], casting="unsafe")
-    cy, cx = np.nonzero(ring)
-    i = np.arange(f)
-    py = (f * cy[:, None, None] + i[None, :, None] - Y0) + np.zeros(f, int)
-    px = (f * cx[:, None, None] + i[None, None, :] - X0) + np.zeros((f, 1), int)
-    py, px = py.ravel(), px.ravel()
     g = g.ravel()
-    at = py * (w + 2 * r1) + px + r1
-    d2 = g[at] ** 2
-    for k in range(1, r1 + 1):
-        gk = np.minimum(g[at - k], g[at + k])
-        np.minimum(d2, gk * gk + np.float32(k * k), out=d2)
-    deep[py + Y0, px + X0] = _depth_ramp(np.sqrt(d2), np.float32(R))
+    flat = deep.reshape(-1)
+    dy, dx = np.repeat(np.arange(f), f), np.tile(np.arange(f), f)  # a cell's pixels
+    offsets = dy * (w + 2 * r1) + dx
+    cells = np.flatnonzero(ring)
+    # the ring's pixels as flat indices into g (and deep), a bounded number at a time
+    for chunk in np.array_split(cells, -(-cells.size // _RING_CELLS_AT_ONCE)):
+        cy, cx = np.divmod(chunk, ring.shape[1])
+        at = (((f * cy - Y0) * (w + 2 * r1) + (f * cx - X0) + r1)[:, None] + offsets).ravel()
+        d2 = g[at] ** 2
+        for k in range(1, r1 + 1):
+            gk = np.minimum(g[at - k], g[at + k])
+            np.minimum(d2, gk * gk + np.float32(k * k), out=d2)
+        out = ((f * cy * W + f * cx)[:, None] + (dy * W + dx)).ravel()
+        flat[out] = _depth_ramp(np.sqrt(d2), np.float32(R))
     return deep
+
+
+#: Cells of :func:`_deep_inside`'s ring computed at once (16 pixels each; about 40
+#: bytes per pixel while they are).
+_RING_CELLS_AT_ONCE = 1 << 14
 
 
 def _disjoint_over_last(chain: np.ndarray, last: np.ndarray, g: np.ndarray,
