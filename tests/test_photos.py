@@ -524,18 +524,40 @@ def test_cup_and_shadow_is_a_fair_case():
     assert rem.sum() == 0
 
 
-@pytest.mark.xfail(strict=True, reason="cause (b), open: the default refinement keeps a "
-                   "fattened map's background strip on the near side (docs/photos.md, "
-                   "Sharp remnants; matting measured and not kept)")
 def test_refinement_keeps_no_background_strip_sharp():
     """The dark shadow line on the saucer lies inside the fattened map's near side. The
     colour may move the edge by 3 px only, and the guided filter's linear colour model
-    fits the dark line to the cup's side (white and dark -> near, red -> far), so the
-    line stays at the cup's depth: sharp along the in-focus outline, where the saucer
-    blurs by 30 px (256 remnants: the 2 px line over 128 rows). A lens leaves none."""
+    fits the dark line to the cup's side (white and dark -> near, red -> far); kept at
+    the cup's depth, it was sharp along the in-focus outline, where the saucer blurs by
+    30 px (256 remnants: the 2 px line over 128 rows). The red gap and the line are
+    closer in colour to the saucer than to the cup and touch it: the far-coloured strip
+    goes to the far side (refine._far_coloured_strips), and a lens leaves none."""
     rem, must = _cup_and_shadow_remnants("guided")
     assert must.sum() > 0
     assert rem.sum() == 0, int(rem.sum())
+
+
+def test_far_coloured_strips_move_the_background_and_not_the_object():
+    """A grey card (columns < 40, with light stripes) before a background whose colour
+    runs from blue to orange down the rows (its local mean is greyish), with the
+    predicted near side 4 px too wide: the background columns on the near side go to
+    the far side, but for the one next to the card, whose 3x3 colour mean is a third
+    the card's (a mixed pixel, either side); no pixel of the card does."""
+    from mpib_validate.runtime.layers import refine
+
+    H, W = 64, 96
+    t = np.linspace(0.0, 1.0, H)[:, None]
+    colour = np.empty((H, W, 3))
+    colour[:] = np.stack([0.05 + 0.6 * t, 0.1 + 0.1 * t, 0.6 - 0.55 * t], -1)  # blue -> orange
+    colour[:, :40] = 0.16  # the grey card
+    colour[::6, :40] = 0.5  # its light stripes
+    colour *= 1.0 + 0.01 * np.random.default_rng(3).standard_normal(colour.shape)
+    x = np.arange(W)[None, :] * np.ones((H, 1), int)
+    m = x < 44
+    band = (x >= 30) & (x < 56)
+    out = refine._far_coloured_strips(colour, m.copy(), band, band, m)
+    assert out[:, :40].all()  # the card
+    assert not out[:, 41:].any()  # the strip moved, the far side as it was
 
 
 def test_sharp_remnants_see_a_line_and_not_an_edge():
@@ -627,7 +649,7 @@ def test_shipped_photographs_meet_the_remnant_target():
     """The issue's target on every shipped photograph and focus: sharp remnants where
     the input map and the refined map both blur (the lines the default draws into the
     blur, counted against its output with the refinement off) at most 0.02 % of those
-    pixels (``photos.REMNANT_TARGET``). Measured worst row 0.016 % (astronaut near);
+    pixels (``photos.REMNANT_TARGET``). Measured worst row 0.015 % (astronaut near);
     before the chain's inside and the fill's occluder test, astronaut near 0.040 %
     (far-colour patches through a surface crossing planes) and coffee far 0.021 % (the
     cup's rim filled in behind its silhouette)."""
@@ -638,11 +660,13 @@ def test_shipped_photographs_meet_the_remnant_target():
     share = {(r["photo"], r["focus"]): r["remnants_both"] / r["must_blur_both"] for r in rows}
     assert max(share.values()) <= REMNANT_TARGET, share
     # these maps overshoot by 2 px: --map-overshoot 2 removes most of what is left against
-    # the truth (measured 593 -> 77, 40.27 -> 41.14 dB mean PSNR over the eight rows)
+    # the truth (measured 471 -> 72, 40.37 -> 40.84 dB mean PSNR over the eight rows; the
+    # default's own far-coloured strip step takes part of what it once gained: 547 -> 68,
+    # 40.28 -> 41.03 dB before it); half the measured gain must stay
     assert (sum(r["remnants_true_overshoot"] for r in rows)
             < sum(r["remnants_true"] for r in rows) / 2)
     assert (np.mean([r["psnr_overshoot"] for r in rows])
-            > np.mean([r["psnr_guided"] for r in rows]) + 0.5)
+            > np.mean([r["psnr_guided"] for r in rows]) + 0.23)
 
 
 def _scope_scene():

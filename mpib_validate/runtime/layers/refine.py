@@ -44,6 +44,12 @@ edges:
    sunglasses, a gap between boxes) otherwise became a line at the other side's depth:
    sharp inside the blur when that side is in focus, which a lens cannot do
    (:func:`mpib_validate.metrics.sharp_remnants` counts it).
+6. no strip of background on the near side (:func:`_far_coloured_strips`; not with
+   ``thin=True``): a network's map that overshoots an outline puts one there, beyond
+   the colour's reach of ``flip_px``. Near-side pixels on the map's ramp, within a few
+   pixels of the predicted edge, whose colour is much closer to the nearest far-side
+   pixel's than to any of the near side's nearby colours, and which touch the far side
+   through each other, go to the far side.
 
 The guide is ``(c / (1 + c))^(1/2.2)`` of the linear colour (bounded for HDR, contrast
 roughly as the eye sees it). Pure numpy/scipy; the guided filter runs only on the
@@ -289,6 +295,8 @@ def refine_disparity(colour: np.ndarray, disparity: np.ndarray, blur_parameter: 
         near[y0:y1, x0:x1] = nb
     if not thin:
         near = _thick_flips(near, m)
+        near = _far_coloured_strips(colour, near, band & (D < lo + STRIP_TOP * (hi - lo)),
+                                    band, m)
     if thin:
         # the degradation keeps the local mean: mean(d) = lo + f (hi - lo), f the near
         # fraction of the window; a structure thinner than the blur, whose window
@@ -391,6 +399,114 @@ def _thick_flips(near: np.ndarray, m: np.ndarray) -> np.ndarray:
     for (box, _, _), value in zip(blocks, _map_blocks(block, blocks)):
         out[box] = value
     return out
+
+
+#: :func:`_far_coloured_strips`: how far (px) from a change of the predicted side a
+#: near-side pixel may be given to the far side; the share of the window's jump above
+#: which a pixel's input disparity is too near to be a strip (it must lie on the map's
+#: ramp, below ``lo + STRIP_TOP (hi - lo)``); and how much closer to the far side's colour
+#: than to the near side's its colour must be. Measured with the photographs' network-like
+#: maps and the cards' degraded maps (``mpib bench --suite photos``; CHANGELOG,
+#: 2026-12-04): without the ramp condition, or with the sides' local means as their only
+#: colours, a grey card's rim before a blue-to-orange background went to the far side
+#: (-4.6 and -3.5 dB on the constant cards against exact depth).
+STRIP_REACH = 8
+STRIP_TOP = 0.75
+STRIP_RATIO = 0.5
+#: The radius (px) of the near side's local mean colour, and the offsets (px) around a
+#: pixel whose nearest near-side pixels also stand for that side's colours.
+STRIP_MEAN_RADIUS = 16
+STRIP_SAMPLE_PX = 4
+
+
+def _far_coloured_strips(colour, near, candidates, band, m):
+    """``near`` with the far-coloured strips on its near side given to the far side.
+
+    A network's map that overshoots an outline puts a strip of the background on the
+    near side, beyond the reach of the guided filter, which follows the mask where the
+    strip's colour is uniform across the mask's edge; kept in focus with the object, the
+    strip is sharp inside the blur around it (``metrics.sharp_remnants``). A pixel of
+    ``candidates`` (band pixels on the map's ramp) on the near side, within
+    :data:`STRIP_REACH` px of a change of the predicted side ``m``, is far-coloured where
+    ``|c - c_far| < STRIP_RATIO * |c - c_near|``: ``c`` its guide colour (3x3 mean),
+    ``c_far`` that of the nearest far-side pixel outside the band, ``c_near`` the closest
+    to ``c`` of the near side's colours around it: the nearest near-side pixel outside
+    the band to the pixel and to each of its 8 neighbours :data:`STRIP_SAMPLE_PX` px
+    away, and the near side's mean over :data:`STRIP_MEAN_RADIUS` px (a textured near
+    side has several colours). The far-coloured pixels connected to the far side through
+    each other (8-connected) go to it. Computed on the blocks of the candidates' tiles,
+    grown by the distance that the answer reads."""
+    f = 2 * STRIP_REACH + 1
+    close = _extreme(m, f, np.maximum) != _extreme(m, f, np.minimum)
+    cand = candidates & near & close
+    if not cand.any():
+        return near
+    # the nearest pixels outside the band lie within the band's width of a candidate;
+    # the mean, the samples and the connectivity read a little farther
+    margin = STRIP_MEAN_RADIUS + STRIP_SAMPLE_PX + 2 * STRIP_REACH
+
+    def block(item):
+        _, sub, inner = item
+        return _strips_box(colour[sub], near[sub], cand[sub], band[sub])[inner]
+
+    out = near.copy()
+    blocks = list(_blocks(cand, margin))
+    for (box, _, _), value in zip(blocks, _map_blocks(block, blocks)):
+        out[box] = value
+    return out
+
+
+def _strips_box(colour, near, cand, band):
+    """:func:`_far_coloured_strips` on one box: its ``near`` with the strips moved.
+    Squared colour distances; the near side's colours are tried one after the other on
+    the pixels that none so far has shown to be near-coloured."""
+    from scipy import ndimage
+
+    far_out, near_out = ~near & ~band, near & ~band
+    if not far_out.any() or not near_out.any():
+        return near
+    g = colour_guide(colour)
+    g = [box_mean(np.ascontiguousarray(g[..., k]), 1).ravel() for k in range(3)]
+    H, W = near.shape
+    ys, xs = np.nonzero(cand)
+    flat = ys * W + xs
+    c = [gk.take(flat) for gk in g]
+
+    def dist2(at, idx):
+        # squared colour distance from the pixels ``at`` (indices into ys, xs) to the
+        # pixels of flat index ``idx``
+        return sum((gk.take(idx) - ck[at]) ** 2 for gk, ck in zip(g, c))
+
+    fy, fx = _nearest_in(far_out)
+    alive = np.arange(ys.size)
+    bound = dist2(alive, (fy * W + fx).ravel().take(flat)) / (STRIP_RATIO * STRIP_RATIO)
+    del fy, fx
+    # far-coloured: every near-side colour farther than bound (squared)
+    ny, nx = _nearest_in(near_out)
+    nearest = (ny * W + nx).ravel()
+    del ny, nx
+    for oy in (0, -STRIP_SAMPLE_PX, STRIP_SAMPLE_PX):
+        for ox in (0, -STRIP_SAMPLE_PX, STRIP_SAMPLE_PX):
+            if not alive.size:
+                break
+            at = (np.clip(ys[alive] + oy, 0, H - 1) * W
+                  + np.clip(xs[alive] + ox, 0, W - 1))
+            keep = dist2(alive, nearest.take(at)) > bound[alive]
+            alive = alive[keep]
+    if alive.size:
+        r = STRIP_MEAN_RADIUS
+        w = box_mean(near_out.astype(np.float32), r).ravel()
+        at = flat[alive]
+        share = w.take(at)
+        d2 = sum((box_mean(gk.reshape(H, W) * near_out, r).ravel().take(at)
+                  / np.maximum(share, 1e-6) - ck[alive]) ** 2 for gk, ck in zip(g, c))
+        # a mean of fewer than 2 % of the window's pixels stands for nothing
+        alive = alive[(share <= 0.02) | (d2 > bound[alive])]
+    strip = np.zeros_like(near)
+    strip[ys[alive], xs[alive]] = True
+    far = ~near
+    grown = ndimage.binary_propagation(far, structure=np.ones((3, 3), bool), mask=far | strip)
+    return near & ~grown
 
 
 #: :func:`_no_new_slivers`: passes of the 3x3 opening and closing (2: a sliver two
