@@ -61,6 +61,7 @@ against the rest of the pipeline.
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -485,14 +486,12 @@ def _strips_box(colour, near, cand, band):
     ny, nx = _nearest_in(near_out)
     nearest = (ny * W + nx).ravel()
     del ny, nx
-    for oy in (0, -STRIP_SAMPLE_PX, STRIP_SAMPLE_PX):
-        for ox in (0, -STRIP_SAMPLE_PX, STRIP_SAMPLE_PX):
-            if not alive.size:
-                break
-            at = (np.clip(ys[alive] + oy, 0, H - 1) * W
-                  + np.clip(xs[alive] + ox, 0, W - 1))
-            keep = dist2(alive, nearest.take(at)) > bound[alive]
-            alive = alive[keep]
+    offsets = (0, -STRIP_SAMPLE_PX, STRIP_SAMPLE_PX)
+    for oy, ox in itertools.product(offsets, offsets):
+        if not alive.size:
+            break
+        at = np.clip(ys[alive] + oy, 0, H - 1) * W + np.clip(xs[alive] + ox, 0, W - 1)
+        alive = alive[dist2(alive, nearest.take(at)) > bound[alive]]
     if alive.size:
         r = STRIP_MEAN_RADIUS
         w = box_mean(near_out.astype(np.float32), r).ravel()
